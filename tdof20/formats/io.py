@@ -1,0 +1,142 @@
+"""Atomic writers and checked readers for the files every stage exchanges (JSON, PNG).
+
+Writes go to a temporary file in the same folder and are renamed into place, so a reader never
+sees a half-written file and an interrupted write never damages the file that was there.
+Readers turn any problem into a one-line :class:`TdofError` naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from tdof20.errors import TdofError
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            if fsync:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def dumps_json(obj: Any, indent: int | None = 2) -> str:
+    return json.dumps(obj, indent=indent, default=_json_default, allow_nan=False)
+
+
+def write_json(path: str | Path, obj: Any, indent: int | None = 2, fsync: bool = False) -> None:
+    atomic_write_bytes(path, (dumps_json(obj, indent) + "\n").encode(), fsync=fsync)
+
+
+def read_json(path: str | Path) -> Any:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise TdofError("file not found", path) from None
+    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise TdofError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", path) from None
+
+
+def encode_png(image: np.ndarray, compression: int = 1) -> bytes:
+    """Encode an 8-bit colour (H,W,3 RGB), 8-bit grey (H,W) or uint16 (H,W) image as PNG bytes."""
+    img = np.ascontiguousarray(image)
+    if img.ndim == 3:
+        if img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ValueError(f"colour images must be (H,W,3) uint8, got {img.shape} {img.dtype}")
+        img = img[..., ::-1]  # RGB -> BGR for OpenCV
+    elif img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"single-channel images must be (H,W) uint8 or uint16, got {img.shape} {img.dtype}")
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    if not ok:  # pragma: no cover - OpenCV encodes any valid array
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def write_png(path: str | Path, image: np.ndarray, compression: int = 1) -> bytes:
+    """Atomically write a PNG (see :func:`encode_png`); returns the bytes written."""
+    data = encode_png(image, compression)
+    atomic_write_bytes(path, data)
+    return data
+
+
+def decode_png(data: bytes, path: str | Path = "<bytes>", kind: str = "any") -> np.ndarray:
+    """Decode PNG bytes. kind: 'rgb' (H,W,3 uint8), 'depth' (H,W uint16), 'mask' (H,W uint8) or 'any'."""
+    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+        raise TdofError("not a PNG file (bad signature)", path)
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise TdofError("corrupt PNG: cannot be decoded", path)
+    if kind == "rgb":
+        if arr.ndim != 3 or arr.shape[2] not in (3, 4) or arr.dtype != np.uint8:
+            raise TdofError(f"expected an 8-bit colour PNG, found {arr.dtype} with shape {arr.shape}", path)
+        arr = np.ascontiguousarray(arr[..., 2::-1])
+    elif kind == "depth":
+        if arr.ndim != 2 or arr.dtype != np.uint16:
+            raise TdofError(f"expected a 16-bit single-channel depth PNG, found {arr.dtype} with shape {arr.shape}", path)
+    elif kind == "mask":
+        if arr.ndim != 2 or arr.dtype != np.uint8:
+            raise TdofError(f"expected an 8-bit single-channel mask PNG, found {arr.dtype} with shape {arr.shape}", path)
+    elif arr.ndim == 3:
+        arr = np.ascontiguousarray(arr[..., 2::-1])
+    return arr
+
+
+def read_png(path: str | Path, kind: str = "any") -> np.ndarray:
+    """Read and check a PNG (see :func:`decode_png`); any problem is a one-line TdofError."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise TdofError("file not found", path) from None
+    except (IsADirectoryError, PermissionError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    return decode_png(data, path, kind)
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

@@ -1,0 +1,414 @@
+"""Ray-cast renderer of the simulated rig (open3d RaycastingScene, CPU).
+
+Three kinds of ray-casting scenes, each built once:
+- ``world``: the static room in the robot base frame, with the turntable body. The turntable is a
+  disk, so its geometry does not change as it turns; only its sticker does, and the sticker is
+  looked up at rotated table coordinates. The world hits of the primary rays are therefore
+  cached per arm position.
+- ``objects``: the scene's objects posed in the table frame; per frame the rays are moved into the
+  table frame instead of rebuilding the scene, and only pixels whose ray can meet an object
+  (the projected bounding boxes) are cast.
+- one scene per object in its model frame, for the full (unoccluded) truth masks.
+
+Two phases share every pose: ``transparent`` (glass: refraction of the background, Fresnel rims,
+specular highlights; depth mostly missing, partly the background's, flying pixels at the rims)
+and ``opaque`` (diffuse twins; stereo noise growing with z^2 and holes at discontinuities).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import trimesh
+
+from tdof20.geometry import PinholeCamera, invert, transform_points
+from tdof20.o3d import o3d
+from tdof20.objects import get_object
+from tdof20.sim.rig import RigLayout
+from tdof20.sim.scenes import SceneSpec
+from tdof20.sim.sensor import SensorModel, smooth_field, stereo_depth
+from tdof20.sim.textures import make_sticker, room_albedo
+
+PHASES = ("transparent", "opaque")
+LIGHT_DIR = np.array([-0.45, 0.35, 1.0]) / np.linalg.norm([-0.45, 0.35, 1.0])  # towards the light, base frame
+AMBIENT = 0.38
+
+
+@dataclass(frozen=True)
+class GlassModel:
+    """Look of the transparent phase (options)."""
+
+    ior: float = 1.5            # index of refraction of the glass
+    refraction: float = 0.6     # 0 = straight through, 1 = full single-surface refraction bend
+    tint: tuple = (0.93, 0.97, 0.95)
+    absorption: float = 0.10    # darkening that grows with the path through the glass (1 / cos)
+    fresnel_f0: float = 0.04    # Schlick reflectance at normal incidence
+    specular: float = 1.6       # Blinn-Phong highlight strength
+    shininess: float = 90.0
+
+
+@dataclass
+class Frame:
+    """One rendered RGB-D pair and its exact ground truth."""
+
+    rgb: np.ndarray                 # (H,W,3) uint8
+    depth: np.ndarray               # (H,W) uint16, camera.depth_scale mm per unit, 0 = no depth
+    label: np.ndarray               # (H,W) int16: index of the visible object (placement order), -1 = none
+    poses: list[np.ndarray]         # T_cam_obj (4,4) per placement
+    depth_true: np.ndarray = field(repr=False, default=None)  # (H,W) float32 mm, noise-free, opaque objects
+
+
+def _twin_colour(obj_id: int) -> np.ndarray:
+    """Matte colour of an object's opaque twin (painted, like a 3D print)."""
+    rng = np.random.default_rng(500 + obj_id)
+    hsv = np.array([[[rng.uniform(0, 180), rng.uniform(40, 140), rng.uniform(170, 235)]]], np.uint8)
+    return (cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255.0).astype(np.float32)
+
+
+def _box(lo, hi) -> trimesh.Trimesh:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
+
+
+class SimRenderer:
+    """Renders frames of one scene as seen from the arm positions of a session.
+
+    ``T_base_cams``: camera pose per arm position (base frame, mm). Use :meth:`render`.
+    """
+
+    def __init__(self, scene: SceneSpec, camera: PinholeCamera, layout: RigLayout,
+                 T_base_cams: list[np.ndarray], sensor: SensorModel | None = None,
+                 glass: GlassModel | None = None, seed: int = 0):
+        self.scene = scene
+        self.camera = camera
+        self.layout = layout
+        self.T_base_cams = [np.asarray(T, float) for T in T_base_cams]
+        self.sensor = (sensor or SensorModel()).validate()
+        self.glass = glass or GlassModel()
+        self.seed = int(seed)
+        self.objects = [get_object(p.obj_id) for p in scene.placements]
+        self._rays_cam = camera.pixel_rays().reshape(-1, 3).astype(np.float32)
+        self._build_world()
+        self._build_objects()
+        self.sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius)
+        self._bg_cache: dict[int, dict] = {}
+        rng = np.random.default_rng([self.seed, 99])
+        h, w = camera.height, camera.width
+        self._pad = 32
+        self._noise_rgb = rng.standard_normal((h + self._pad, w + self._pad, 3), dtype=np.float32)
+        self._noise_depth = rng.standard_normal((h + self._pad, w + self._pad), dtype=np.float32)
+        self._uniform = rng.random((h + self._pad, w + self._pad), dtype=np.float32)
+
+    # ------------------------------------------------------------------ scene building
+    def _build_world(self) -> None:
+        L = self.layout
+        cx, cy, cz = L.table_centre
+        R, th = L.table_radius, L.table_thickness
+        parts: list[tuple[trimesh.Trimesh, str]] = []
+        top = trimesh.creation.cylinder(radius=R, height=th, sections=160)
+        top.apply_translation([cx, cy, cz - th / 2])
+        parts.append((top, "turntable"))
+        bench_z = cz - th
+        parts.append((_box([cx - 550, cy - 700, bench_z - 30], [cx + 650, cy + 700, bench_z]), "wood"))
+        parts.append((_box([cx - 500, cy - 650, -900], [cx + 600, cy + 650, bench_z - 30]), "dark"))
+        room_lo, room_hi = np.array([-1500.0, -1800.0, -900.0]), np.array([2100.0, 1800.0, 1500.0])
+        room = _box(room_lo, room_hi)
+        parts.append((trimesh.Trimesh(room.vertices, room.faces[:, ::-1]), "room"))
+        parts.append((_box([1700, -1150, -900], [2080, -420, 300]), "wood"))
+        parts.append((_box([1750, 500, -900], [2080, 1300, -150]), "metal"))
+        scene = o3d.t.geometry.RaycastingScene()
+        self._world_material = []
+        for mesh, mat in parts:
+            scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                                o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+            self._world_material.append(mat)
+        self._world = scene
+
+    def _build_objects(self) -> None:
+        self._objects = o3d.t.geometry.RaycastingScene()
+        self._obj_faces, self._obj_vnormals = [], []
+        self._model_scenes = []
+        for p, obj in zip(self.scene.placements, self.objects):
+            v_table = transform_points(p.T_table_obj, obj.vertices).astype(np.float32)
+            faces = np.asarray(obj.faces, np.int32)
+            self._objects.add_triangles(o3d.core.Tensor(v_table), o3d.core.Tensor(faces.astype(np.uint32)))
+            vn = trimesh.Trimesh(obj.vertices, obj.faces, process=False).vertex_normals
+            self._obj_faces.append(faces)
+            self._obj_vnormals.append((vn @ p.T_table_obj[:3, :3].T).astype(np.float32))
+            ms = o3d.t.geometry.RaycastingScene()
+            ms.add_triangles(o3d.core.Tensor(obj.vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+            self._model_scenes.append(ms)
+        self._bbox_corners = []
+        for obj in self.objects:
+            lo, hi = obj.vertices.min(0), obj.vertices.max(0)
+            self._bbox_corners.append(np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                                for z in (lo[2], hi[2])]))
+
+    # ------------------------------------------------------------------ helpers
+    def _cast(self, scene, origin: np.ndarray, dirs: np.ndarray) -> dict:
+        rays = np.empty((len(dirs), 6), np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = dirs
+        res = scene.cast_rays(o3d.core.Tensor(rays))
+        return {k: v.numpy() for k, v in res.items()}
+
+    def _sticker_coords(self, xy_table0: np.ndarray, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points on the table top (table frame at angle 0 of the *world*, i.e. base-aligned) ->
+        sticker pixel coordinates once the table has turned by angle_deg."""
+        a = np.radians(angle_deg)
+        c, s = np.cos(a), np.sin(a)
+        x, y = xy_table0[..., 0], xy_table0[..., 1]
+        xt, yt = c * x + s * y, -s * x + c * y  # Rz(-a)
+        R, mm = self.layout.table_radius, self.sticker_mm_px
+        return ((xt + R) / mm - 0.5).astype(np.float32), ((R - yt) / mm - 0.5).astype(np.float32)
+
+    def _sample_sticker(self, xy_table0: np.ndarray, angle_deg: float) -> np.ndarray:
+        """Bilinear sticker colour (N,3) at table-top points (N,2) once the table turned by angle_deg."""
+        mx, my = self._sticker_coords(xy_table0, angle_deg)
+        n = len(mx)
+        cols = 1024  # cv2.remap needs maps shorter than 32767 in each dimension
+        rows = -(-n // cols)
+        pad = rows * cols - n
+        mx = np.concatenate([mx, np.zeros(pad, np.float32)]).reshape(rows, cols)
+        my = np.concatenate([my, np.zeros(pad, np.float32)]).reshape(rows, cols)
+        out = cv2.remap(self.sticker, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        return out.reshape(-1, 3)[:n]
+
+    def _world_colour(self, points: np.ndarray, normals: np.ndarray, gids: np.ndarray, dirs: np.ndarray,
+                      angle_deg: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World hits (N) -> (albedo (N,3), Lambert shade (N,), on-sticker (N,) bool).
+        The sticker albedo is looked up only when ``angle_deg`` is given (else left black)."""
+        n = np.where((np.sum(normals * dirs, axis=1) > 0)[:, None], -normals, normals)
+        shade = (AMBIENT + (1 - AMBIENT) * np.clip(n @ LIGHT_DIR, 0, 1)).astype(np.float32)
+        albedo = np.zeros((len(points), 3), np.float32)
+        cz = self.layout.table_centre[2]
+        is_top = np.zeros(len(points), bool)
+        for gid, mat in enumerate(self._world_material):
+            sel = gids == gid
+            if not sel.any():
+                continue
+            if mat == "turntable":
+                top = sel & (np.abs(points[:, 2] - cz) < 0.5)
+                albedo[sel & ~top] = 0.12
+                is_top |= top
+            elif mat == "room":
+                albedo[sel] = self._room_surface(points[sel])
+            else:
+                albedo[sel] = room_albedo(mat, points[sel])
+        if angle_deg is not None and is_top.any():
+            xy = points[is_top, :2] - np.asarray(self.layout.table_centre[:2])
+            albedo[is_top] = self._sample_sticker(xy, angle_deg)
+        return albedo, shade, is_top
+
+    def _room_surface(self, p: np.ndarray) -> np.ndarray:
+        floor = p[:, 2] < -899.0
+        out = room_albedo("wall", p)
+        if floor.any():
+            out[floor] = room_albedo("floor", p[floor])
+        return out
+
+    def _background(self, arm: int) -> dict:
+        """World hits of the primary rays of one arm position (cached)."""
+        if arm in self._bg_cache:
+            return self._bg_cache[arm]
+        T = self.T_base_cams[arm]
+        dirs = (self._rays_cam @ T[:3, :3].T).astype(np.float32)
+        hit = self._cast(self._world, T[:3, 3], dirs)
+        z = hit["t_hit"].astype(np.float32)
+        points = T[:3, 3] + dirs * z[:, None]
+        albedo, shade, top = self._world_colour(points, hit["primitive_normals"], hit["geometry_ids"], dirs, None)
+        colour = albedo * shade[:, None]
+        h, w = self.camera.height, self.camera.width
+        xy = (points[:, :2] - np.asarray(self.layout.table_centre[:2])).astype(np.float32)
+        top_idx = np.flatnonzero(top)
+        bg = {"z": z.reshape(h, w), "colour": colour.reshape(h, w, 3).astype(np.float32),
+              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_xy": xy[top_idx]}
+        self._bg_cache[arm] = bg
+        return bg
+
+    def poses(self, arm: int, angle_deg: float) -> list[np.ndarray]:
+        """T_cam_obj (4,4) of every placement at arm position ``arm`` and table angle ``angle_deg``."""
+        T_cam_table = invert(self.T_base_cams[arm]) @ self.layout.T_base_table(angle_deg)
+        return [T_cam_table @ p.T_table_obj for p in self.scene.placements]
+
+    def _roi(self, poses: list[np.ndarray]) -> np.ndarray:
+        """Pixel mask (H,W) of the projected bounding boxes of the objects."""
+        roi = np.zeros((self.camera.height, self.camera.width), bool)
+        for T, corners in zip(poses, self._bbox_corners):
+            roi |= self._roi_single(T, corners)
+        return roi
+
+    # ------------------------------------------------------------------ rendering
+    def frame_rng(self, phase: str, arm: int, step: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, PHASES.index(phase), arm, step])
+
+    def render(self, arm: int, step: int, angle_deg: float, phase: str) -> Frame:
+        """Render the RGB-D pair of ``phase`` at arm position ``arm``, table step ``step`` (seeds the
+        noise) and table angle ``angle_deg``. Deterministic for (seed, phase, arm, step)."""
+        if phase not in PHASES:
+            raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
+        cam = self.camera
+        h, w = cam.height, cam.width
+        rng = self.frame_rng(phase, arm, step)
+        bg = self._background(arm)
+        poses = self.poses(arm, angle_deg)
+        T_base_cam = self.T_base_cams[arm]
+        T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ T_base_cam
+        R_cam_table = T_table_cam[:3, :3].T
+
+        roi = self._roi(poses).reshape(-1)
+        idx = np.flatnonzero(roi)
+        rays_cam = self._rays_cam[idx]
+        hit = self._cast(self._objects, T_table_cam[:3, 3], rays_cam @ T_table_cam[:3, :3].T.astype(np.float32))
+        z_obj_roi = hit["t_hit"].astype(np.float32)
+        z_bg = bg["z"].reshape(-1)
+        vis_roi = np.isfinite(z_obj_roi) & (z_obj_roi < z_bg[idx])
+        label = np.full(h * w, -1, np.int16)
+        label[idx[vis_roi]] = hit["geometry_ids"][vis_roi].astype(np.int16)
+        z_obj = np.full(h * w, np.inf, np.float32)
+        z_obj[idx[vis_roi]] = z_obj_roi[vis_roi]
+
+        # background colour: static room + the sticker at this table angle
+        colour = bg["colour"].copy().reshape(-1, 3)
+        if len(bg["top_idx"]):
+            colour[bg["top_idx"]] = self._sample_sticker(bg["top_xy"], angle_deg) * bg["top_shade"]
+
+        vi = idx[vis_roi]  # flat pixel indices of visible object pixels
+        if len(vi):
+            gid = hit["geometry_ids"][vis_roi]
+            n_table = self._interp_normals(gid, hit["primitive_ids"][vis_roi], hit["primitive_uvs"][vis_roi])
+            n_cam = n_table @ R_cam_table.T
+            d_cam = rays_cam[vis_roi] / np.linalg.norm(rays_cam[vis_roi], axis=1, keepdims=True)
+            n_cam = np.where((np.sum(n_cam * d_cam, axis=1) > 0)[:, None], -n_cam, n_cam)
+            L_cam = T_base_cam[:3, :3].T @ LIGHT_DIR
+            if phase == "opaque":
+                albedo = np.stack([_twin_colour(self.objects[g].obj_id) for g in range(len(self.objects))])[gid]
+                lam = AMBIENT + (1 - AMBIENT) * np.clip(n_cam @ L_cam, 0, 1)
+                hvec = L_cam[None, :] - d_cam
+                hvec /= np.linalg.norm(hvec, axis=1, keepdims=True)
+                spec = 0.12 * np.clip(np.sum(n_cam * hvec, axis=1), 0, 1) ** 20
+                colour[vi] = albedo * lam[:, None] + spec[:, None]
+            else:
+                colour[vi] = self._glass_colour(vi, z_obj[vi], d_cam, n_cam, L_cam, T_base_cam, angle_deg,
+                                                colour[vi])
+
+        # RGB with sensor noise
+        oy, ox = rng.integers(0, self._pad, 2)
+        rgb = cv2.addWeighted(colour.reshape(h, w, 3), 255.0, self._noise_rgb[oy:oy + h, ox:ox + w],
+                              self.sensor.rgb_sigma, 0.0, dtype=cv2.CV_8U)
+        noise = self._noise_depth[oy:oy + h, ox:ox + w]
+        uniform = self._uniform[oy:oy + h, ox:ox + w]
+
+        # depth
+        z_true = np.minimum(z_obj, z_bg).reshape(h, w)
+        z_obj_img = z_obj.reshape(h, w)
+        glass = (label >= 0).reshape(h, w)
+        if phase == "opaque":
+            z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform)
+        else:
+            z_sensor = self._glass_depth(z_obj_img, bg["z"], glass, rng, noise, uniform)
+        depth = cam.mm_to_depth(z_sensor)
+        return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
+
+    def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        n = np.zeros((len(gid), 3), np.float32)
+        for g in np.unique(gid):
+            sel = gid == g
+            f = self._obj_faces[g][prim[sel]]
+            vn = self._obj_vnormals[g]
+            u, v = uv[sel, 0:1], uv[sel, 1:2]
+            n[sel] = (1 - u - v) * vn[f[:, 0]] + u * vn[f[:, 1]] + v * vn[f[:, 2]]
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+        return n
+
+    def _glass_colour(self, vi, z, d_cam, n_cam, L_cam, T_base_cam, angle_deg, behind_colour):
+        """Colour of glass pixels: the background seen along a refracted ray, tinted and
+        darkened with path length, plus Fresnel reflection of the room and highlights."""
+        g = self.glass
+        cos_i = np.clip(-np.sum(d_cam * n_cam, axis=1), 1e-3, 1.0)
+        eta = 1.0 / g.ior
+        k = 1.0 - eta ** 2 * (1.0 - cos_i ** 2)
+        refr = eta * d_cam + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * n_cam
+        bent = d_cam + g.refraction * (refr - d_cam)
+        bent /= np.linalg.norm(bent, axis=1, keepdims=True)
+        p_cam = self._rays_cam[vi] * z[:, None]
+        R = T_base_cam[:3, :3]
+        origin = p_cam @ R.T + T_base_cam[:3, 3]
+        dirs = (bent @ R.T).astype(np.float32)
+        rays = np.empty((len(vi), 6), np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = dirs
+        hit = {k_: v.numpy() for k_, v in self._world.cast_rays(o3d.core.Tensor(rays)).items()}
+        t = hit["t_hit"]
+        pts = origin + dirs * t[:, None]
+        albedo, shade, _ = self._world_colour(pts, hit["primitive_normals"], hit["geometry_ids"], dirs, angle_deg)
+        seen = albedo * shade[:, None]
+        trans = np.exp(-g.absorption / cos_i)[:, None] * np.asarray(g.tint, np.float32)
+        F = g.fresnel_f0 + (1 - g.fresnel_f0) * (1 - cos_i) ** 5
+        refl_dir = (d_cam + 2 * cos_i[:, None] * n_cam) @ R.T
+        env = 0.55 + 0.4 * np.clip(refl_dir[:, 2], -1, 1)
+        hvec = L_cam[None, :] - d_cam
+        hvec /= np.linalg.norm(hvec, axis=1, keepdims=True)
+        spec = g.specular * np.clip(np.sum(n_cam * hvec, axis=1), 0, 1) ** g.shininess
+        col = (1 - F)[:, None] * seen * trans + (F * env)[:, None] + spec[:, None]
+        return np.clip(col, 0, 1)
+
+    def _glass_depth(self, z_obj, z_bg, glass, rng, noise, uniform):
+        """Active stereo on glass: most glass pixels return nothing, some the background behind,
+        the rest the glass surface with large noise; flying pixels at the silhouettes."""
+        s = self.sensor
+        z = z_bg.copy()
+        if glass.any():
+            field_ = smooth_field(glass.shape, rng)
+            fv = field_[glass]
+            q1, q2 = np.quantile(fv, [s.glass_missing, min(1.0, s.glass_missing + s.glass_behind)])
+            surface = z_obj[glass] + s.glass_sigma_mm * noise[glass][::-1]
+            z[glass] = np.where(fv < q1, 0.0, np.where(fv < q2, z_bg[glass], surface))
+        out = stereo_depth(z, self.camera.fx, s, rng, noise, uniform)
+        if glass.any() and s.rim_px > 0 and s.flying_fraction > 0:
+            # work in the bounding box of the glass pixels grown by the rim width
+            vs, us = np.nonzero(glass)
+            m = s.rim_px + 1
+            v0, v1 = max(vs.min() - m, 0), min(vs.max() + m + 1, glass.shape[0])
+            u0, u1 = max(us.min() - m, 0), min(us.max() + m + 1, glass.shape[1])
+            g8 = glass[v0:v1, u0:u1].astype(np.uint8)
+            k = np.ones((2 * s.rim_px + 1, 2 * s.rim_px + 1), np.uint8)
+            band = (cv2.dilate(g8, k) > 0) & (cv2.erode(g8, k) == 0)
+            u_rand = uniform[v0:v1, u0:u1][::-1, ::-1]
+            fly = band & (u_rand < s.flying_fraction)
+            zf = cv2.erode(np.where(g8 > 0, z_obj[v0:v1, u0:u1], np.float32(1e9)).astype(np.float32), k)
+            zb = z_bg[v0:v1, u0:u1]
+            fly &= (zf < 1e9) & (zb > 0)
+            wgt = u_rand[fly] / max(s.flying_fraction, 1e-6)
+            sub = out[v0:v1, u0:u1]
+            sub[fly] = wgt * zf[fly] + (1 - wgt) * zb[fly]
+        return out
+
+    def full_masks(self, poses: list[np.ndarray]) -> list[np.ndarray]:
+        """Unoccluded silhouette (H,W) bool of every object at the given poses."""
+        h, w = self.camera.height, self.camera.width
+        out = []
+        for T, corners, ms in zip(poses, self._bbox_corners, self._model_scenes):
+            roi = self._roi_single(T, corners)
+            idx = np.flatnonzero(roi)
+            T_obj_cam = invert(T)
+            hit = self._cast(ms, T_obj_cam[:3, 3], self._rays_cam[idx] @ T_obj_cam[:3, :3].T.astype(np.float32))
+            m = np.zeros(h * w, bool)
+            m[idx[np.isfinite(hit["t_hit"])]] = True
+            out.append(m.reshape(h, w))
+        return out
+
+    def _roi_single(self, T, corners):
+        h, w = self.camera.height, self.camera.width
+        roi = np.zeros((h, w), bool)
+        pc = transform_points(T, corners)
+        if np.any(pc[:, 2] <= 1.0):
+            roi[:] = True
+            return roi
+        uv, _ = self.camera.project(pc)
+        u0, v0 = np.floor(uv.min(0)).astype(int) - 1
+        u1, v1 = np.ceil(uv.max(0)).astype(int) + 2
+        roi[max(v0, 0):min(v1, h), max(u0, 0):min(u1, w)] = True
+        return roi
