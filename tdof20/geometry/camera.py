@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PinholeCamera:
     """K (3,3) in pixels, image size, and ``depth_scale`` millimetres per depth unit."""
 
@@ -30,6 +30,15 @@ class PinholeCamera:
             raise ValueError(f"depth_scale must be > 0 mm per unit, got {self.depth_scale}")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
             raise ValueError("K must have positive focal lengths and K[2,2] == 1")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PinholeCamera):
+            return NotImplemented
+        return (self.width, self.height, self.depth_scale) == (other.width, other.height, other.depth_scale) \
+            and bool(np.array_equal(self.K, other.K))
+
+    def __hash__(self) -> int:
+        return hash((self.width, self.height, self.depth_scale, tuple(np.round(self.K.reshape(-1), 9))))
 
     # --- construction ---------------------------------------------------------------------
     @classmethod
@@ -80,7 +89,7 @@ class PinholeCamera:
 
     def mm_to_depth(self, z_mm: np.ndarray) -> np.ndarray:
         """Millimetres (H,W) -> uint16 depth units, rounded; NaN, <= 0 and overflow become 0."""
-        units = np.rint(np.asarray(z_mm, dtype=np.float32) * np.float32(1.0 / self.depth_scale))
+        units = np.asarray(np.rint(np.asarray(z_mm, dtype=np.float32) * np.float32(1.0 / self.depth_scale)))
         bad = ~((units > 0) & (units <= 65535))  # also catches NaN
         units[bad] = 0
         return units.astype(np.uint16)

@@ -92,7 +92,8 @@ class SimRenderer:
         self._rays_cam = camera.pixel_rays().reshape(-1, 3).astype(np.float32)
         self._build_world()
         self._build_objects()
-        self.sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius)
+        sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius, 768)
+        self.sticker = np.clip(sticker * 255 + 0.5, 0, 255).astype(np.uint8)
         self._bg_cache: dict[int, dict] = {}
         rng = np.random.default_rng([self.seed, 99])
         h, w = camera.height, camera.width
@@ -140,6 +141,11 @@ class SimRenderer:
             ms = o3d.t.geometry.RaycastingScene()
             ms.add_triangles(o3d.core.Tensor(obj.vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
             self._model_scenes.append(ms)
+        sizes_v = [len(v) for v in self._obj_vnormals]
+        v_off = np.concatenate([[0], np.cumsum(sizes_v)[:-1]]).astype(np.int64)
+        self._faces_all = np.concatenate([f.astype(np.int64) + o for f, o in zip(self._obj_faces, v_off)])
+        self._face_offset = np.concatenate([[0], np.cumsum([len(f) for f in self._obj_faces])[:-1]]).astype(np.int64)
+        self._vnormals_all = np.concatenate(self._obj_vnormals)
         self._bbox_corners = []
         for obj in self.objects:
             lo, hi = obj.vertices.min(0), obj.vertices.max(0)
@@ -154,27 +160,32 @@ class SimRenderer:
         res = scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in res.items()}
 
-    def _sticker_coords(self, xy_table0: np.ndarray, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-        """Points on the table top (table frame at angle 0 of the *world*, i.e. base-aligned) ->
-        sticker pixel coordinates once the table has turned by angle_deg."""
-        a = np.radians(angle_deg)
-        c, s = np.cos(a), np.sin(a)
-        x, y = xy_table0[..., 0], xy_table0[..., 1]
-        xt, yt = c * x + s * y, -s * x + c * y  # Rz(-a)
-        R, mm = self.layout.table_radius, self.sticker_mm_px
-        return ((xt + R) / mm - 0.5).astype(np.float32), ((R - yt) / mm - 0.5).astype(np.float32)
+    def _sticker_maps(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Table-top points (N,2) mm, world-aligned, relative to the table centre -> their sticker
+        pixel coordinates relative to the sticker centre at angle 0, as two (rows, 1024) arrays
+        (cv2.remap needs maps shorter than 32767 in each dimension), and N."""
+        mm = self.sticker_mm_px
+        n = len(xy)
+        cols = 1024
+        rows = max(1, -(-n // cols))
+        dx = np.zeros(rows * cols, np.float32)
+        dy = np.zeros(rows * cols, np.float32)
+        dx[:n] = xy[:, 0] / mm
+        dy[:n] = -xy[:, 1] / mm
+        return dx.reshape(rows, cols), dy.reshape(rows, cols), n
 
-    def _sample_sticker(self, xy_table0: np.ndarray, angle_deg: float) -> np.ndarray:
-        """Bilinear sticker colour (N,3) at table-top points (N,2) once the table turned by angle_deg."""
-        mx, my = self._sticker_coords(xy_table0, angle_deg)
-        n = len(mx)
-        cols = 1024  # cv2.remap needs maps shorter than 32767 in each dimension
-        rows = -(-n // cols)
-        pad = rows * cols - n
-        mx = np.concatenate([mx, np.zeros(pad, np.float32)]).reshape(rows, cols)
-        my = np.concatenate([my, np.zeros(pad, np.float32)]).reshape(rows, cols)
+    def _sample_sticker(self, xy: np.ndarray | None, angle_deg: float, maps=None) -> np.ndarray:
+        """Sticker albedo (N,3) float32 at table-top points (N,2) once the table has turned by
+        ``angle_deg`` counter-clockwise: the points are rotated back by the angle into the sticker."""
+        dx, dy, n = maps if maps is not None else self._sticker_maps(xy)
+        a = np.radians(angle_deg)
+        c, s_ = np.float32(np.cos(a)), np.float32(np.sin(a))
+        centre = np.float32((self.sticker.shape[0] - 1) / 2.0)
+        # image axes: x right = table x, y down = -table y; Rz(-a) in those axes
+        mx = c * dx - s_ * dy + centre
+        my = s_ * dx + c * dy + centre
         out = cv2.remap(self.sticker, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        return out.reshape(-1, 3)[:n]
+        return out.reshape(-1, 3)[:n].astype(np.float32) * np.float32(1 / 255)
 
     def _world_colour(self, points: np.ndarray, normals: np.ndarray, gids: np.ndarray, dirs: np.ndarray,
                       angle_deg: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -224,7 +235,7 @@ class SimRenderer:
         xy = (points[:, :2] - np.asarray(self.layout.table_centre[:2])).astype(np.float32)
         top_idx = np.flatnonzero(top)
         bg = {"z": z.reshape(h, w), "colour": colour.reshape(h, w, 3).astype(np.float32),
-              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_xy": xy[top_idx]}
+              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_maps": self._sticker_maps(xy[top_idx])}
         self._bg_cache[arm] = bg
         return bg
 
@@ -273,7 +284,7 @@ class SimRenderer:
         # background colour: static room + the sticker at this table angle
         colour = bg["colour"].copy().reshape(-1, 3)
         if len(bg["top_idx"]):
-            colour[bg["top_idx"]] = self._sample_sticker(bg["top_xy"], angle_deg) * bg["top_shade"]
+            colour[bg["top_idx"]] = self._sample_sticker(None, angle_deg, bg["top_maps"]) * bg["top_shade"]
 
         vi = idx[vis_roi]  # flat pixel indices of visible object pixels
         if len(vi):
@@ -291,8 +302,8 @@ class SimRenderer:
                 spec = 0.12 * np.clip(np.sum(n_cam * hvec, axis=1), 0, 1) ** 20
                 colour[vi] = albedo * lam[:, None] + spec[:, None]
             else:
-                colour[vi] = self._glass_colour(vi, z_obj[vi], d_cam, n_cam, L_cam, T_base_cam, angle_deg,
-                                                colour[vi])
+                colour[vi] = self._glass_colour(vi, z_obj[vi], d_cam, n_cam, L_cam, T_base_cam,
+                                                colour.reshape(h, w, 3).copy(), bg["z"])
 
         # RGB with sensor noise
         oy, ox = rng.integers(0, self._pad, 2)
@@ -313,42 +324,47 @@ class SimRenderer:
         return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
 
     def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        n = np.zeros((len(gid), 3), np.float32)
-        for g in np.unique(gid):
-            sel = gid == g
-            f = self._obj_faces[g][prim[sel]]
-            vn = self._obj_vnormals[g]
-            u, v = uv[sel, 0:1], uv[sel, 1:2]
-            n[sel] = (1 - u - v) * vn[f[:, 0]] + u * vn[f[:, 1]] + v * vn[f[:, 2]]
+        """Smooth (barycentric) vertex normals at ray hits, table frame, (N,3) unit."""
+        f = self._faces_all[self._face_offset[gid] + prim]  # (N,3) global vertex ids
+        vn = self._vnormals_all
+        u, v = uv[:, 0:1], uv[:, 1:2]
+        n = (1 - u - v) * vn[f[:, 0]] + u * vn[f[:, 1]] + v * vn[f[:, 2]]
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
         return n
 
-    def _glass_colour(self, vi, z, d_cam, n_cam, L_cam, T_base_cam, angle_deg, behind_colour):
-        """Colour of glass pixels: the background seen along a refracted ray, tinted and
-        darkened with path length, plus Fresnel reflection of the room and highlights."""
+    def _glass_colour(self, vi, z, d_cam, n_cam, L_cam, T_base_cam, background, z_bg):
+        """Colour of glass pixels: the background seen along a refracted ray (screen-space: the
+        bent ray is followed to the background depth and the background image is sampled
+        there), tinted and darkened with path length, plus Fresnel reflection and highlights."""
         g = self.glass
+        cam = self.camera
         cos_i = np.clip(-np.sum(d_cam * n_cam, axis=1), 1e-3, 1.0)
         eta = 1.0 / g.ior
         k = 1.0 - eta ** 2 * (1.0 - cos_i ** 2)
         refr = eta * d_cam + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * n_cam
         bent = d_cam + g.refraction * (refr - d_cam)
-        bent /= np.linalg.norm(bent, axis=1, keepdims=True)
-        p_cam = self._rays_cam[vi] * z[:, None]
-        R = T_base_cam[:3, :3]
-        origin = p_cam @ R.T + T_base_cam[:3, 3]
-        dirs = (bent @ R.T).astype(np.float32)
-        rays = np.empty((len(vi), 6), np.float32)
-        rays[:, :3] = origin
-        rays[:, 3:] = dirs
-        hit = {k_: v.numpy() for k_, v in self._world.cast_rays(o3d.core.Tensor(rays)).items()}
-        t = hit["t_hit"]
-        pts = origin + dirs * t[:, None]
-        albedo, shade, _ = self._world_colour(pts, hit["primitive_normals"], hit["geometry_ids"], dirs, angle_deg)
-        seen = albedo * shade[:, None]
+        p = self._rays_cam[vi] * z[:, None]
+        bz = np.maximum(bent[:, 2], 0.05)
+        zb = z_bg.reshape(-1)[vi]
+        for _ in range(2):  # follow the bent ray to the background depth, twice to settle
+            q = p + ((np.maximum(zb - p[:, 2], 0.0) / bz)[:, None]) * bent
+            u = q[:, 0] / q[:, 2] * cam.fx + cam.cx
+            v = q[:, 1] / q[:, 2] * cam.fy + cam.cy
+            ui = np.clip(np.rint(u), 0, cam.width - 1).astype(np.int64)
+            vv = np.clip(np.rint(v), 0, cam.height - 1).astype(np.int64)
+            zb = np.minimum(z_bg[vv, ui], 1e5)
+        n = len(vi)
+        cols = 1024
+        rows = max(1, -(-n // cols))
+        mx = np.zeros(rows * cols, np.float32)
+        my = np.zeros(rows * cols, np.float32)
+        mx[:n], my[:n] = u, v
+        seen = cv2.remap(background, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
         trans = np.exp(-g.absorption / cos_i)[:, None] * np.asarray(g.tint, np.float32)
         F = g.fresnel_f0 + (1 - g.fresnel_f0) * (1 - cos_i) ** 5
-        refl_dir = (d_cam + 2 * cos_i[:, None] * n_cam) @ R.T
-        env = 0.55 + 0.4 * np.clip(refl_dir[:, 2], -1, 1)
+        refl_dir_z = (d_cam + 2 * cos_i[:, None] * n_cam) @ T_base_cam[2, :3]
+        env = 0.55 + 0.4 * np.clip(refl_dir_z, -1, 1)
         hvec = L_cam[None, :] - d_cam
         hvec /= np.linalg.norm(hvec, axis=1, keepdims=True)
         spec = g.specular * np.clip(np.sum(n_cam * hvec, axis=1), 0, 1) ** g.shininess

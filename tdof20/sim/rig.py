@@ -86,7 +86,7 @@ class RigLayout:
     table_centre: tuple = (850.0, 0.0, -100.0)   # centre of the table top in the base frame, mm
     table_radius: float = 250.0                    # turntable top radius, mm
     table_thickness: float = 40.0                  # turntable disk height, mm
-    view_distance: float = 550.0                   # camera to look-at point, mm
+    view_distance: float = 450.0                   # camera to look-at point, mm
     look_height: float = 60.0                      # look-at point above the table centre, mm
     elevations_deg: tuple = (22.0, 36.0, 50.0, 64.0)
     azimuth_deg: float = 180.0                     # camera stands on the robot's side of the table

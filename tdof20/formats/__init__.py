@@ -1,0 +1,64 @@
+"""Readers and atomic writers of the folders the stages exchange: the raw capture session
+(:mod:`tdof20.formats.session`), BOP scenes and models info (:mod:`tdof20.formats.bop`), and the
+checked JSON/PNG primitives beneath them (:mod:`tdof20.formats.io`). See ``docs/formats.md``."""
+
+from tdof20.formats.io import (
+    atomic_write_bytes,
+    decode_png,
+    dumps_json,
+    encode_png,
+    read_json,
+    read_png,
+    sha256_bytes,
+    sha256_file,
+    write_json,
+    write_png,
+)
+from tdof20.formats.session import (
+    FORMAT,
+    JOURNAL_FILE,
+    PHASES,
+    SESSION_FILE,
+    TRUTH_DIR,
+    ArmPosition,
+    JournalEntry,
+    RawSession,
+    SessionInfo,
+    append_journal,
+    frame_paths,
+    read_journal,
+    read_session,
+    write_frame,
+    write_session,
+)
+from tdof20.formats.bop import (
+    EMPTY_BBOX,
+    MODELS_INFO,
+    SCENE_CAMERA,
+    SCENE_GT,
+    SCENE_GT_INFO,
+    BopScene,
+    BopSceneWriter,
+    bbox_from_mask,
+    dumps_bop_json,
+    gt_info_from_masks,
+    pose_from_bop,
+    pose_to_bop,
+    read_models_info,
+    read_scene,
+    write_models_info,
+)
+
+__all__ = [
+    # io
+    "atomic_write_bytes", "decode_png", "dumps_json", "encode_png", "read_json", "read_png",
+    "sha256_bytes", "sha256_file", "write_json", "write_png",
+    # session
+    "FORMAT", "JOURNAL_FILE", "PHASES", "SESSION_FILE", "TRUTH_DIR", "ArmPosition", "JournalEntry",
+    "RawSession", "SessionInfo", "append_journal", "frame_paths", "read_journal", "read_session",
+    "write_frame", "write_session",
+    # bop
+    "EMPTY_BBOX", "MODELS_INFO", "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "BopScene",
+    "BopSceneWriter", "bbox_from_mask", "dumps_bop_json", "gt_info_from_masks", "pose_from_bop",
+    "pose_to_bop", "read_models_info", "read_scene", "write_models_info",
+]

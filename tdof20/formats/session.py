@@ -1,0 +1,755 @@
+"""The raw capture session: what the rig (or the simulator) records, before any annotation.
+
+A session is a folder::
+
+    session.json                              what was planned: scene, objects, camera, arm
+                                              positions, hand-eye calibration, turntable, phases
+    journal.jsonl                             one JSON line per captured frame, appended
+    {phase}/arm{a}/rgb/{k:06d}.png            8-bit colour
+    {phase}/arm{a}/depth/{k:06d}.png          uint16, ``depth_scale`` mm per unit, 0 = no depth
+    truth/                                    simulated sessions only: a BOP scene (evaluation only)
+
+The journal is the truth: a frame exists once its line is in the journal. Frames are written
+first (atomically), then their journal line is appended and fsync'ed, so an interrupted capture
+resumes from the journal and never trusts a half-written image. See ``docs/formats.md``.
+
+Every problem in a session found while reading is a one-line :class:`TdofError` naming the file;
+reading never modifies anything on disk.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import re
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Iterator
+
+import numpy as np
+
+from tdof20.errors import TdofError
+from tdof20.formats.io import decode_png, dumps_json, read_json, sha256_bytes, write_json, write_png
+from tdof20.geometry.camera import PinholeCamera
+
+FORMAT = "tdof20-raw-session"
+VERSION = 1
+SESSION_FILE = "session.json"
+JOURNAL_FILE = "journal.jsonl"
+TRUTH_DIR = "truth"
+PHASES = ("transparent", "opaque")
+N_JOINTS = 6
+SCENE_ID_RE = re.compile(r"^(single|multi)/(0[1-9]|1[0-9]|20)$")
+OBJ_ID_RANGE = (1, 20)
+RIGID_TOL = 1e-4
+METRES_THRESHOLD_MM = 5.0  # a T_base_tcp translation shorter than this looks like metres
+
+FrameKey = tuple[str, int, int]  # (phase, arm, step)
+
+
+# ---------------------------------------------------------------------------------------------
+# strict validation helpers: every failure is one line naming the file and the field path
+# ---------------------------------------------------------------------------------------------
+def _jtype(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, (int, float)):
+        return "a number"
+    if isinstance(v, str):
+        return "a string"
+    if isinstance(v, list):
+        return "a list"
+    if isinstance(v, dict):
+        return "an object"
+    return type(v).__name__
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+class _Checker:
+    """Raises :class:`TdofError` naming ``path`` (and, for the journal, the line)."""
+
+    def __init__(self, path: str | Path | None, prefix: str = ""):
+        self.path = path
+        self.prefix = prefix
+
+    def fail(self, msg: str) -> None:
+        raise TdofError(self.prefix + msg, self.path)
+
+    def obj(self, v: Any, where: str) -> dict:
+        if not isinstance(v, dict):
+            self.fail(f"{where} must be an object {{...}}, got {_jtype(v)}")
+        return v
+
+    def get(self, d: dict, key: str, where: str) -> Any:
+        if key not in d:
+            self.fail(f"missing field '{where + '.' if where else ''}{key}'")
+        return d[key]
+
+    def number(self, v: Any, where: str, gt: float | None = None) -> float:
+        if not _is_number(v):
+            self.fail(f"{where} must be a number, got {_jtype(v)}")
+        x = float(v)
+        if not math.isfinite(x):
+            self.fail(f"{where} must be finite, got {x}")
+        if gt is not None and not x > gt:
+            self.fail(f"{where} must be > {gt:g}, got {x:g}")
+        return x
+
+    def integer(self, v: Any, where: str, lo: int | None = None, hi: int | None = None) -> int:
+        if not _is_int(v):
+            got = repr(v) if isinstance(v, float) else _jtype(v)
+            self.fail(f"{where} must be an integer, got {got}")
+        i = int(v)
+        if (lo is not None and i < lo) or (hi is not None and i > hi):
+            rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            self.fail(f"{where} must be {rng}, got {i}")
+        return i
+
+    def string(self, v: Any, where: str) -> str:
+        if not isinstance(v, str):
+            self.fail(f"{where} must be a string, got {_jtype(v)}")
+        return v
+
+    def numbers(self, v: Any, n: int, where: str, what: str = "numbers") -> np.ndarray:
+        if not isinstance(v, (list, tuple, np.ndarray)):
+            self.fail(f"{where} must be {n} {what}, got {_jtype(v)}")
+        if len(v) != n:
+            self.fail(f"{where} must be {n} {what}, got {len(v)}")
+        for i, x in enumerate(v):
+            if not _is_number(x):
+                self.fail(f"{where}[{i}] must be a number, got {_jtype(x)}")
+            if not math.isfinite(float(x)):
+                self.fail(f"{where}[{i}] must be finite, got {float(x)}")
+        return np.asarray(v, dtype=np.float64)
+
+    def rigid(self, v: Any, where: str, check_metres: bool = False) -> np.ndarray:
+        T = self.numbers(v, 16, where, "numbers (a row-major 4x4 rigid transform, mm)").reshape(4, 4)
+        if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
+            self.fail(f"{where} is not a rigid transform: last row must be 0 0 0 1, "
+                      f"got {' '.join(f'{x:g}' for x in T[3])}")
+        R = T[:3, :3]
+        err = float(np.max(np.abs(R @ R.T - np.eye(3))))
+        if err > RIGID_TOL:
+            self.fail(f"{where} is not a rigid transform: its rotation is not orthonormal "
+                      f"(|R R^T - I| = {err:.2g} > {RIGID_TOL:g})")
+        if np.linalg.det(R) < 0:
+            self.fail(f"{where} is not a rigid transform: its rotation is a reflection (det -1)")
+        if check_metres:
+            norm = float(np.linalg.norm(T[:3, 3]))
+            if norm < METRES_THRESHOLD_MM:
+                self.fail(f"{where} translation has length {norm:.4g}: looks like metres, millimetres expected")
+        return T
+
+
+def _frame_check(phase: Any, arm: Any, step: Any) -> None:
+    if phase not in PHASES:
+        raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
+    if not _is_int(arm) or arm < 0:
+        raise ValueError(f"arm must be an integer >= 0, got {arm!r}")
+    if not _is_int(step) or step < 0:
+        raise ValueError(f"step must be an integer >= 0, got {step!r}")
+
+
+def frame_paths(phase: str, arm: int, step: int) -> tuple[str, str]:
+    """Relative POSIX paths (rgb, depth) of a frame inside a session folder."""
+    _frame_check(phase, arm, step)
+    return (f"{phase}/arm{int(arm)}/rgb/{int(step):06d}.png", f"{phase}/arm{int(arm)}/depth/{int(step):06d}.png")
+
+
+def _deep_merge(extra: Any, known: Any) -> Any:
+    """``known`` over ``extra``: dicts merge key by key, equal-length lists item by item."""
+    if isinstance(extra, dict) and isinstance(known, dict):
+        out = {k: _deep_merge(extra.get(k), v) if k in extra else v for k, v in known.items()}
+        for k, v in extra.items():
+            if k not in out:
+                out[k] = copy.deepcopy(v)
+        return out
+    if isinstance(extra, list) and isinstance(known, list) and len(extra) == len(known):
+        return [_deep_merge(e, k) for e, k in zip(extra, known)]
+    return known
+
+
+def _flat(a: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
+
+
+# ---------------------------------------------------------------------------------------------
+# session.json
+# ---------------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class ArmPosition:
+    """One of the arm's capture positions: joint angles ``q`` (6,) in radians and the flange
+    (tool centre point) pose ``T_base_tcp`` (4,4) in mm, as the robot reported it."""
+
+    q: np.ndarray
+    T_base_tcp: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.q = np.asarray(self.q, dtype=np.float64).reshape(N_JOINTS)
+        self.T_base_tcp = np.asarray(self.T_base_tcp, dtype=np.float64).reshape(4, 4)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ArmPosition):
+            return NotImplemented
+        return bool(np.array_equal(self.q, other.q) and np.array_equal(self.T_base_tcp, other.T_base_tcp))
+
+
+_TOP_KNOWN = ("format", "version", "scene_id", "objects", "camera", "arm_positions", "hand_eye",
+              "turntable", "phases")
+_CAMERA_KNOWN = ("K", "width", "height", "depth_scale")
+
+
+@dataclass(eq=False)
+class SessionInfo:
+    """The contents of ``session.json``.
+
+    ``extra`` keeps everything the file holds beyond the fields modelled here, with the same
+    nesting (e.g. ``{"operator": "ana", "camera": {"serial": "1944"}}``); :meth:`to_dict` merges it
+    back, so a read-write round trip keeps the file's content. ``objects`` and ``turntable`` are
+    kept whole (their extra keys included).
+    """
+
+    scene_id: str
+    objects: list[dict]
+    camera: PinholeCamera
+    arm_positions: list[ArmPosition]
+    T_tcp_cam: np.ndarray
+    turntable: dict
+    phases: tuple = PHASES
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.T_tcp_cam = np.asarray(self.T_tcp_cam, dtype=np.float64).reshape(4, 4)
+        self.phases = tuple(self.phases)
+        self.arm_positions = [a if isinstance(a, ArmPosition) else ArmPosition(**a) for a in self.arm_positions]
+
+    # --- plan ------------------------------------------------------------------------------
+    @property
+    def steps(self) -> int:
+        return int(self.turntable["steps"])
+
+    @property
+    def step_deg(self) -> float:
+        return float(self.turntable["step_deg"])
+
+    @property
+    def n_arms(self) -> int:
+        return len(self.arm_positions)
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return [int(o["obj_id"]) for o in self.objects]
+
+    def angle_deg(self, step: int) -> float:
+        """Turntable angle in degrees at ``step`` (step 0 = 0°)."""
+        return float(step) * self.step_deg
+
+    def T_base_cam(self, arm: int) -> np.ndarray:
+        """Camera pose in the robot base frame at arm position ``arm``: T_base_tcp @ T_tcp_cam (mm)."""
+        return self.arm_positions[arm].T_base_tcp @ self.T_tcp_cam
+
+    def frame_paths(self, phase: str, arm: int, step: int) -> tuple[str, str]:
+        """Relative POSIX paths (rgb, depth) of a planned frame."""
+        if phase not in self.phases:
+            raise ValueError(f"phase {phase!r} is not one of this session's phases {self.phases}")
+        if not (0 <= arm < self.n_arms) or not (0 <= step < self.steps):
+            raise ValueError(f"frame arm {arm} step {step} is outside the plan ({self.n_arms} arms, {self.steps} steps)")
+        return frame_paths(phase, arm, step)
+
+    def planned_frames(self) -> list[FrameKey]:
+        """Every planned (phase, arm, step), in capture order."""
+        return [(p, a, k) for p in self.phases for a in range(self.n_arms) for k in range(self.steps)]
+
+    # --- (de)serialisation ---------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        known = {
+            "format": FORMAT,
+            "version": VERSION,
+            "scene_id": self.scene_id,
+            "objects": copy.deepcopy(list(self.objects)),
+            "camera": self.camera.to_dict(),
+            "arm_positions": [{"q": _flat(a.q), "T_base_tcp": _flat(a.T_base_tcp)} for a in self.arm_positions],
+            "hand_eye": {"T_tcp_cam": _flat(self.T_tcp_cam)},
+            "turntable": copy.deepcopy(dict(self.turntable)),
+            "phases": list(self.phases),
+        }
+        # through JSON, so the dict equals what a read-back gives (tuples -> lists, numpy -> float)
+        return json.loads(dumps_json(_deep_merge(self.extra, known), indent=None))
+
+    @classmethod
+    def from_dict(cls, d: Any, path: str | Path | None = SESSION_FILE) -> "SessionInfo":
+        """Validate a parsed ``session.json`` strictly; any problem is a TdofError naming ``path``
+        and the field."""
+        c = _Checker(path)
+        if not isinstance(d, dict):
+            c.fail(f"must hold a JSON object {{...}}, got {_jtype(d)}")
+        fmt = c.get(d, "format", "")
+        if fmt != FORMAT:
+            c.fail(f"is not a tdof20 raw session: format must be '{FORMAT}', got {fmt!r}")
+        version = c.integer(c.get(d, "version", ""), "version", lo=1)
+        if version > VERSION:
+            c.fail(f"version {version} is newer than this tdof20 reads ({VERSION}); upgrade tdof20")
+
+        scene_id = c.string(c.get(d, "scene_id", ""), "scene_id")
+        if not SCENE_ID_RE.match(scene_id):
+            c.fail(f"scene_id must look like 'single/NN' or 'multi/NN' with NN in 01..20, got {scene_id!r}")
+
+        objects = c.get(d, "objects", "")
+        if not isinstance(objects, list) or not objects:
+            c.fail(f"objects must be a non-empty list of objects, got {_jtype(objects) if not isinstance(objects, list) else 'an empty list'}")
+        for i, o in enumerate(objects):
+            c.obj(o, f"objects[{i}]")
+            c.integer(c.get(o, "obj_id", f"objects[{i}]"), f"objects[{i}].obj_id", *OBJ_ID_RANGE)
+        if scene_id.startswith("single/") and len(objects) != 1:
+            c.fail(f"scene {scene_id} is a single-object scene but objects lists {len(objects)}")
+
+        cam = c.obj(c.get(d, "camera", ""), "camera")
+        K = c.numbers(c.get(cam, "K", "camera"), 9, "camera.K").reshape(3, 3)
+        width = c.integer(c.get(cam, "width", "camera"), "camera.width", lo=1)
+        height = c.integer(c.get(cam, "height", "camera"), "camera.height", lo=1)
+        depth_scale = c.number(c.get(cam, "depth_scale", "camera"), "camera.depth_scale", gt=0)
+        _check_K(c, K, width, height, "camera.K")
+        camera = PinholeCamera(K, width, height, depth_scale)
+
+        arms = c.get(d, "arm_positions", "")
+        if not isinstance(arms, list) or not arms:
+            c.fail(f"arm_positions must be a non-empty list, got {_jtype(arms) if not isinstance(arms, list) else 'an empty list'}")
+        arm_positions, arm_extra = [], []
+        for i, a in enumerate(arms):
+            where = f"arm_positions[{i}]"
+            c.obj(a, where)
+            q = c.numbers(c.get(a, "q", where), N_JOINTS, f"{where}.q", "joint angles (rad)")
+            if np.max(np.abs(q)) > 2 * np.pi + 1e-6:
+                c.fail(f"{where}.q has a joint angle of {np.max(np.abs(q)):.4g}: looks like degrees, radians expected")
+            T = c.rigid(c.get(a, "T_base_tcp", where), f"{where}.T_base_tcp", check_metres=True)
+            arm_positions.append(ArmPosition(q, T))
+            arm_extra.append({k: copy.deepcopy(v) for k, v in a.items() if k not in ("q", "T_base_tcp")})
+
+        hand_eye = c.obj(c.get(d, "hand_eye", ""), "hand_eye")
+        T_tcp_cam = c.rigid(c.get(hand_eye, "T_tcp_cam", "hand_eye"), "hand_eye.T_tcp_cam")
+
+        turntable = c.obj(c.get(d, "turntable", ""), "turntable")
+        c.number(c.get(turntable, "step_deg", "turntable"), "turntable.step_deg", gt=0)
+        c.integer(c.get(turntable, "steps", "turntable"), "turntable.steps", lo=1)
+
+        phases = d.get("phases", list(PHASES))
+        if not isinstance(phases, list) or not phases:
+            c.fail(f"phases must be a non-empty list of {' / '.join(PHASES)}, got {_jtype(phases)}")
+        for i, p in enumerate(phases):
+            if p not in PHASES:
+                c.fail(f"phases[{i}] must be one of {', '.join(PHASES)}, got {p!r}")
+        if len(set(phases)) != len(phases):
+            c.fail(f"phases lists a phase twice: {phases}")
+
+        extra = {k: copy.deepcopy(v) for k, v in d.items() if k not in _TOP_KNOWN}
+        cam_extra = {k: copy.deepcopy(v) for k, v in cam.items() if k not in _CAMERA_KNOWN}
+        if cam_extra:
+            extra["camera"] = cam_extra
+        he_extra = {k: copy.deepcopy(v) for k, v in hand_eye.items() if k != "T_tcp_cam"}
+        if he_extra:
+            extra["hand_eye"] = he_extra
+        if any(arm_extra):
+            extra["arm_positions"] = arm_extra
+
+        return cls(scene_id=scene_id, objects=copy.deepcopy(objects), camera=camera,
+                   arm_positions=arm_positions, T_tcp_cam=T_tcp_cam,
+                   turntable=copy.deepcopy(turntable), phases=tuple(phases), extra=extra)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, SessionInfo):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+
+def _check_K(c: _Checker, K: np.ndarray, width: int, height: int, where: str) -> None:
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        c.fail(f"{where} focal lengths must be > 0 pixels, got fx={K[0, 0]:g} fy={K[1, 1]:g}")
+    if np.any(K[2] != [0, 0, 1]) or K[1, 0] != 0:
+        c.fail(f"{where} must be an upper-triangular intrinsic matrix with last row 0 0 1, got {_flat(K)}")
+    if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
+        c.fail(f"{where} principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width}x{height} image")
+    hfov = 2 * math.degrees(math.atan(width / (2 * K[0, 0])))
+    vfov = 2 * math.degrees(math.atan(height / (2 * K[1, 1])))
+    if not (1.0 <= hfov <= 170.0 and 1.0 <= vfov <= 170.0):
+        c.fail(f"{where} gives a field of view of {hfov:.3g}x{vfov:.3g} degrees: "
+               f"focal lengths must be in pixels for a {width}x{height} image")
+
+
+def _session_file(path: str | Path) -> Path:
+    p = Path(path)
+    if p.is_dir():
+        return p / SESSION_FILE
+    if p.name == SESSION_FILE or p.exists():
+        return p
+    raise TdofError("no such session folder", p)
+
+
+def write_session(dir: str | Path, info: SessionInfo) -> Path:
+    """Validate ``info`` and write ``<dir>/session.json`` atomically; returns its path."""
+    path = Path(dir) / SESSION_FILE
+    d = info.to_dict()
+    SessionInfo.from_dict(json.loads(dumps_json(d)), path)  # refuse to write what we could not read
+    write_json(path, d, fsync=True)
+    return path
+
+
+def read_session(path: str | Path) -> SessionInfo:
+    """Read and validate a session's ``session.json`` (give the folder or the file)."""
+    f = _session_file(path)
+    return SessionInfo.from_dict(read_json(f), f)
+
+
+# ---------------------------------------------------------------------------------------------
+# journal.jsonl
+# ---------------------------------------------------------------------------------------------
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+_JOURNAL_KNOWN = ("phase", "arm", "step", "angle_deg", "rgb", "depth", "sha256", "t")
+
+
+@dataclass
+class JournalEntry:
+    """One captured frame: which it is, where its files are (relative POSIX paths), their sha256
+    checksums, and when it was captured (unix time). ``extra`` keeps any further keys."""
+
+    phase: str
+    arm: int
+    step: int
+    angle_deg: float
+    rgb: str
+    depth: str
+    sha256: dict
+    t: float
+    extra: dict = field(default_factory=dict)
+    line: int | None = field(default=None, compare=False, repr=False)  # journal line it came from
+
+    @property
+    def key(self) -> FrameKey:
+        return (self.phase, self.arm, self.step)
+
+    def to_dict(self) -> dict:
+        d = {"phase": self.phase, "arm": int(self.arm), "step": int(self.step),
+             "angle_deg": float(self.angle_deg), "rgb": self.rgb, "depth": self.depth,
+             "sha256": dict(self.sha256), "t": float(self.t)}
+        for k, v in self.extra.items():
+            if k not in d:
+                d[k] = v
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Any, path: str | Path | None = None, line: int | None = None) -> "JournalEntry":
+        c = _Checker(path, prefix=f"line {line}: " if line is not None else "")
+        if not isinstance(d, dict):
+            c.fail(f"a journal entry must be a JSON object {{...}}, got {_jtype(d)}")
+        phase = c.string(c.get(d, "phase", ""), "phase")
+        if phase not in PHASES:
+            c.fail(f"phase must be one of {', '.join(PHASES)}, got {phase!r}")
+        arm = c.integer(c.get(d, "arm", ""), "arm", lo=0)
+        step = c.integer(c.get(d, "step", ""), "step", lo=0)
+        angle = c.number(c.get(d, "angle_deg", ""), "angle_deg")
+        files = {}
+        for k in ("rgb", "depth"):
+            rel = c.string(c.get(d, k, ""), k)
+            pp = PurePosixPath(rel)
+            if not rel or pp.is_absolute() or ".." in pp.parts or "\\" in rel:
+                c.fail(f"{k} must be a relative POSIX path inside the session, got {rel!r}")
+            files[k] = rel
+        sha = c.obj(c.get(d, "sha256", ""), "sha256")
+        for k in ("rgb", "depth"):
+            h = c.string(c.get(sha, k, "sha256"), f"sha256.{k}")
+            if not _HEX64.match(h):
+                c.fail(f"sha256.{k} must be 64 lower-case hex digits, got {h[:80]!r}")
+        t = c.number(c.get(d, "t", ""), "t")
+        extra = {k: v for k, v in d.items() if k not in _JOURNAL_KNOWN}
+        return cls(phase, arm, step, angle, files["rgb"], files["depth"], dict(sha), t, extra, line)
+
+
+def _journal_file(path: str | Path) -> Path:
+    p = Path(path)
+    return p if p.suffix == ".jsonl" else p / JOURNAL_FILE
+
+
+def _last_line_span(f, size: int) -> tuple[int, bytes]:
+    """(start offset, bytes) of the last line of an open binary file, its final newline included."""
+    pos = size
+    tail = b""
+    while pos > 0:
+        n = min(4096, pos)
+        pos -= n
+        f.seek(pos)
+        tail = f.read(n) + tail
+        i = tail.rfind(b"\n", 0, len(tail) - 1)  # the file's own final newline does not count
+        if i >= 0:
+            return pos + i + 1, tail[i + 1:]
+    return 0, tail
+
+
+def _parse_line(raw: bytes) -> Any:
+    return json.loads(raw.decode("utf-8"))
+
+
+def append_journal(dir: str | Path, entry: JournalEntry) -> None:
+    """Append one entry to ``<dir>/journal.jsonl``, flushed and fsync'ed before returning.
+
+    A last line left incomplete by a crash (no final newline, not valid JSON) is cut off first,
+    with a warning, so the new line starts on a line of its own; a valid last line missing its
+    newline is ended. Complete lines are never changed.
+    """
+    path = _journal_file(dir)
+    line = (dumps_json(entry.to_dict(), indent=None) + "\n").encode()
+    created = not path.exists()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+b") as f:
+        size = f.seek(0, os.SEEK_END)
+        if size > 0:
+            start, last = _last_line_span(f, size)
+            if not last.endswith(b"\n"):  # the previous append did not finish
+                try:
+                    ok = isinstance(_parse_line(last), dict)
+                except (ValueError, UnicodeDecodeError):
+                    ok = False
+                if ok:
+                    f.write(b"\n")
+                else:
+                    warnings.warn(f"{path}: line {_count_lines(f, start) + 1} is incomplete "
+                                  f"(interrupted write); cutting it off before appending", stacklevel=2)
+                    f.truncate(start)
+        f.write(line)
+        f.flush()
+        os.fsync(f.fileno())
+    if created:
+        _fsync_dir(path.parent)
+
+
+def _count_lines(f, upto: int) -> int:
+    f.seek(0)
+    return f.read(upto).count(b"\n")
+
+
+def _fsync_dir(d: Path) -> None:
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:  # pragma: no cover - not supported on every OS
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+def read_journal(dir: str | Path) -> list[JournalEntry]:
+    """All entries of ``<dir>/journal.jsonl`` in file order ([] if there is no journal).
+
+    An unparseable last line (a crash mid-append) is ignored with a warning; a malformed line
+    anywhere else is a TdofError naming the file and the line number. Blank lines are skipped.
+    """
+    path = _journal_file(dir)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return []
+    except (IsADirectoryError, PermissionError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    lines = data.split(b"\n")
+    numbered = [(i + 1, raw) for i, raw in enumerate(lines) if raw.strip()]
+    out = []
+    for j, (lineno, raw) in enumerate(numbered):
+        try:
+            d = _parse_line(raw)
+        except (ValueError, UnicodeDecodeError) as e:
+            if j == len(numbered) - 1:
+                warnings.warn(f"{path}: ignoring incomplete last line {lineno} (interrupted write?)", stacklevel=2)
+                break
+            msg = e.msg if isinstance(e, json.JSONDecodeError) else "not UTF-8 text"
+            raise TdofError(f"line {lineno} is not valid JSON ({msg})", path) from None
+        out.append(JournalEntry.from_dict(d, path, lineno))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# writing a frame
+# ---------------------------------------------------------------------------------------------
+def write_frame(dir: str | Path, info: SessionInfo, phase: str, arm: int, step: int, rgb: np.ndarray,
+                depth: np.ndarray, t: float | None = None, extra: dict | None = None) -> JournalEntry:
+    """Write one RGB-D frame: both PNGs atomically, then its journal line (fsync'ed).
+
+    rgb: (H,W,3) uint8 RGB; depth: (H,W) uint16 in ``info.camera.depth_scale`` mm per unit.
+    Returns the journal entry. Re-writing a frame appends a new line; the last one wins.
+    """
+    dir = Path(dir)
+    rgb_rel, depth_rel = info.frame_paths(phase, arm, step)
+    cam = info.camera
+    rgb = np.asarray(rgb)
+    depth = np.asarray(depth)
+    if rgb.shape != (cam.height, cam.width, 3) or rgb.dtype != np.uint8:
+        raise TdofError(f"colour frame is {rgb.shape} {rgb.dtype}, session camera needs "
+                        f"({cam.height}, {cam.width}, 3) uint8", dir / rgb_rel)
+    if depth.shape != (cam.height, cam.width) or depth.dtype != np.uint16:
+        raise TdofError(f"depth frame is {depth.shape} {depth.dtype}, session camera needs "
+                        f"({cam.height}, {cam.width}) uint16", dir / depth_rel)
+    rgb_bytes = write_png(dir / rgb_rel, rgb)
+    depth_bytes = write_png(dir / depth_rel, depth)
+    entry = JournalEntry(phase=phase, arm=int(arm), step=int(step), angle_deg=info.angle_deg(step),
+                         rgb=rgb_rel, depth=depth_rel,
+                         sha256={"rgb": sha256_bytes(rgb_bytes), "depth": sha256_bytes(depth_bytes)},
+                         t=time.time() if t is None else float(t), extra=dict(extra or {}))
+    append_journal(dir, entry)
+    return entry
+
+
+# ---------------------------------------------------------------------------------------------
+# reading a session
+# ---------------------------------------------------------------------------------------------
+class RawSession:
+    """A raw session opened for reading: ``session.json`` plus the journal. Reads only."""
+
+    def __init__(self, path: Path, info: SessionInfo, entries: list[JournalEntry]):
+        self.path = Path(path)
+        self.info = info
+        self.entries = entries
+        self._index: dict[FrameKey, JournalEntry] = {}
+        jpath = self.path / JOURNAL_FILE
+        for e in entries:
+            self._index[e.key] = e  # the last line for a frame wins
+        for n, e in enumerate(entries):
+            if e.phase not in info.phases or not (0 <= e.arm < info.n_arms) or not (0 <= e.step < info.steps):
+                where = f"line {e.line}" if e.line is not None else f"entry {n + 1}"
+                raise TdofError(f"{where}: frame {e.phase} arm {e.arm} step {e.step} is outside the plan in "
+                                f"session.json (phases {list(info.phases)}, {info.n_arms} arms, {info.steps} steps)",
+                                jpath)
+
+    @classmethod
+    def open(cls, path: str | Path) -> "RawSession":
+        """Open a session folder (or its session.json)."""
+        f = _session_file(path)
+        info = SessionInfo.from_dict(read_json(f), f)
+        return cls(f.parent, info, read_journal(f.parent))
+
+    # --- what is there ---------------------------------------------------------------------------
+    def frames(self, phase: str | None = None) -> list[FrameKey]:
+        """Captured frames (phase, arm, step), in plan order (phase, then arm, then step)."""
+        order = {p: i for i, p in enumerate(self.info.phases)}
+        keys = [k for k in self._index if phase is None or k[0] == phase]
+        return sorted(keys, key=lambda k: (order[k[0]], k[1], k[2]))
+
+    def has_frame(self, phase: str, arm: int, step: int) -> bool:
+        return (phase, arm, step) in self._index
+
+    def entry(self, phase: str, arm: int, step: int) -> JournalEntry:
+        """The journal entry of a frame; TdofError if the journal does not list it."""
+        e = self._index.get((phase, arm, step))
+        if e is None:
+            try:
+                rel = frame_paths(phase, arm, step)[0]
+            except ValueError:
+                rel = f"{phase}/arm{arm}"
+            raise TdofError(f"missing frame: {phase} arm {arm} step {step} is not in {JOURNAL_FILE} "
+                            f"(never captured)", self.path / rel)
+        return e
+
+    def missing_frames(self) -> list[FrameKey]:
+        """Planned (phase, arm, step) triples that the journal does not list, in plan order."""
+        return [k for k in self.info.planned_frames() if k not in self._index]
+
+    @property
+    def truth_dir(self) -> Path | None:
+        d = self.path / TRUTH_DIR
+        return d if d.is_dir() else None
+
+    # --- loading ---------------------------------------------------------------------------------
+    def _load(self, phase: str, arm: int, step: int, kind: str, verify: bool) -> np.ndarray:
+        e = self.entry(phase, arm, step)
+        rel = e.rgb if kind == "rgb" else e.depth
+        p = self.path / rel
+        try:
+            data = p.read_bytes()
+        except FileNotFoundError:
+            raise TdofError(f"missing frame {phase} arm {arm} step {step}: the journal lists it "
+                            f"but the {kind} file is not there", p) from None
+        except (IsADirectoryError, PermissionError) as ex:
+            raise TdofError(f"cannot read ({type(ex).__name__})", p) from None
+        if verify and sha256_bytes(data) != e.sha256.get(kind):
+            raise TdofError(f"checksum mismatch: the file differs from what the journal recorded "
+                            f"for {phase} arm {arm} step {step}", p)
+        img = decode_png(data, p, kind)
+        cam = self.info.camera
+        if img.shape[:2] != (cam.height, cam.width):
+            raise TdofError(f"image is {img.shape[1]}x{img.shape[0]}, session camera is {cam.width}x{cam.height}", p)
+        return img
+
+    def load_rgb(self, phase: str, arm: int, step: int, verify: bool = False) -> np.ndarray:
+        """(H,W,3) uint8 RGB of a captured frame."""
+        return self._load(phase, arm, step, "rgb", verify)
+
+    def load_depth(self, phase: str, arm: int, step: int, verify: bool = False) -> np.ndarray:
+        """(H,W) uint16 depth (``depth_scale`` mm per unit, 0 = no depth) of a captured frame."""
+        return self._load(phase, arm, step, "depth", verify)
+
+    def load_depth_mm(self, phase: str, arm: int, step: int, verify: bool = False) -> np.ndarray:
+        """(H,W) float32 depth in millimetres (0 = no depth)."""
+        return self.info.camera.depth_to_mm(self.load_depth(phase, arm, step, verify))
+
+    # --- checking --------------------------------------------------------------------------------
+    def verify_file(self, entry: JournalEntry) -> list[str]:
+        """Problems with a frame's files: missing, checksum mismatch, undecodable, wrong size.
+        Each problem is one line naming the file; [] when all is well."""
+        problems = []
+        cam = self.info.camera
+        for kind in ("rgb", "depth"):
+            p = self.path / (entry.rgb if kind == "rgb" else entry.depth)
+            try:
+                data = p.read_bytes()
+            except FileNotFoundError:
+                problems.append(f"{p}: missing file ({entry.phase} arm {entry.arm} step {entry.step} is in the journal)")
+                continue
+            except OSError as ex:
+                problems.append(f"{p}: cannot read ({type(ex).__name__})")
+                continue
+            if sha256_bytes(data) != entry.sha256.get(kind):
+                problems.append(f"{p}: checksum mismatch (the file differs from what the journal recorded)")
+            try:
+                img = decode_png(data, p, kind)
+            except TdofError as ex:
+                problems.append(str(ex))
+                continue
+            if img.shape[:2] != (cam.height, cam.width):
+                problems.append(f"{p}: image is {img.shape[1]}x{img.shape[0]}, session camera is {cam.width}x{cam.height}")
+        return problems
+
+    def verify_all(self) -> list[str]:
+        """:meth:`verify_file` over every captured frame (the entry that counts for each)."""
+        out = []
+        for k in self.frames():
+            out.extend(self.verify_file(self._index[k]))
+        return out
+
+    def __iter__(self) -> Iterator[FrameKey]:
+        return iter(self.frames())
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def __repr__(self) -> str:
+        return (f"RawSession({str(self.path)!r}, scene {self.info.scene_id}, "
+                f"{len(self)}/{len(self.info.planned_frames())} frames)")
+
+
+__all__ = [
+    "FORMAT", "VERSION", "SESSION_FILE", "JOURNAL_FILE", "TRUTH_DIR", "PHASES", "SCENE_ID_RE",
+    "ArmPosition", "SessionInfo", "JournalEntry", "RawSession", "frame_paths", "write_session",
+    "read_session", "append_journal", "read_journal", "write_frame",
+]

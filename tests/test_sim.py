@@ -1,0 +1,204 @@
+"""The simulated rig: kinematics, scenes, renderer physics and the session it writes."""
+
+import numpy as np
+import pytest
+
+from tdof20.errors import TdofError
+from tdof20.formats import RawSession, read_scene, read_session, sha256_file
+from tdof20.geometry import invert, rotation_angle, transform_points
+from tdof20.objects import get_object
+from tdof20.sim.rig import RigLayout, ur5_fk, ur5_ik
+from tdof20.sim.scenes import get_scene, scene_ids
+from tdof20.sim.session import SimSessionConfig, build_session_info, make_renderer, simulate_session
+
+
+# ------------------------------------------------------------------------------- kinematics
+def test_ur5_ik_inverts_fk():
+    q = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2])
+    T = ur5_fk(q)
+    q2 = ur5_ik(T, q + 0.1)
+    assert np.allclose(ur5_fk(q2), T, atol=1e-6)
+
+
+def test_ur5_fk_reach_and_home():
+    # all joints at zero: the arm lies stretched along -x (UR convention), reach a2 + a3 in x
+    T = ur5_fk(np.zeros(6))
+    assert T[0, 3] == pytest.approx(-425.0 - 392.25)
+    with pytest.raises(ValueError):
+        ur5_ik(np.eye(4) @ np.diag([1, 1, 1, 1]) + np.array([[0, 0, 0, 2000]] + [[0, 0, 0, 0]] * 3), np.zeros(6))
+
+
+def test_arm_positions_look_at_the_table():
+    L = RigLayout()
+    for q, T_tcp in L.arm_positions(4):
+        T_cam = T_tcp @ L.T_tcp_cam
+        centre_cam = transform_points(invert(T_cam), np.asarray(L.table_centre) + [0, 0, L.look_height])
+        # the look-at point sits on the optical axis, about view_distance ahead
+        assert abs(centre_cam[0]) < 1e-3 and abs(centre_cam[1]) < 1e-3
+        assert centre_cam[2] == pytest.approx(L.view_distance, abs=1e-3)
+        assert np.linalg.norm(T_tcp[:3, 3]) < 850.0  # within UR5 reach
+
+
+# ------------------------------------------------------------------------------- scenes
+def test_forty_scenes_exist_and_unknown_names_fail():
+    ids = scene_ids()
+    assert len(ids) == 40 and ids[0] == "single/01" and ids[-1] == "multi/20"
+    for bad in ("multi/21", "single/00", "foo", "multi/8"):
+        with pytest.raises(TdofError, match="unknown scene"):
+            get_scene(bad)
+
+
+def test_scene_contents_and_no_interpenetration():
+    for sid in scene_ids():
+        s = get_scene(sid)
+        if s.kind == "single":
+            assert s.obj_ids == [s.number]
+            continue
+        assert 3 <= len(s.obj_ids) <= 5 and len(set(s.obj_ids)) == len(s.obj_ids)
+        for i, a in enumerate(s.placements):
+            oa = get_object(a.obj_id)
+            # standing on the table top, inside the table
+            z = transform_points(a.T_table_obj, oa.vertices)[:, 2]
+            assert z.min() == pytest.approx(0.0, abs=1e-6)
+            assert np.linalg.norm(a.T_table_obj[:2, 3]) + oa.footprint_radius < 250.0
+            for b in s.placements[i + 1:]:
+                ob = get_object(b.obj_id)
+                d = np.linalg.norm(a.T_table_obj[:2, 3] - b.T_table_obj[:2, 3])
+                assert d > oa.footprint_radius + ob.footprint_radius
+    # deterministic
+    assert get_scene("multi/05").obj_ids == get_scene.__wrapped__("multi/05").obj_ids
+
+
+# ------------------------------------------------------------------------------- renderer
+def test_same_seed_same_frames_and_other_seed_differs(small_cfg):
+    info = build_session_info(small_cfg)
+    r1, r2 = make_renderer(small_cfg, info), make_renderer(small_cfg, info)
+    for phase in ("transparent", "opaque"):
+        a, b = r1.render(1, 2, 60.0, phase), r2.render(1, 2, 60.0, phase)
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+    other = SimSessionConfig(**{**small_cfg.__dict__, "seed": 5})
+    c = make_renderer(other, build_session_info(other)).render(1, 2, 60.0, "opaque")
+    assert not np.array_equal(c.depth, a.depth)
+
+
+def test_opaque_depth_matches_truth_within_noise_model(renderer_640):
+    r = renderer_640
+    f = r.render(1, 7, 6.3, "opaque")
+    z = r.camera.depth_to_mm(f.depth)
+    valid = z > 0
+    on_obj = f.label >= 0
+    assert valid[on_obj].mean() > 0.8  # opaque twins return depth almost everywhere
+    sigma = r.sensor.depth_sigma(f.depth_true, r.camera.fx)
+    err = np.abs(z - f.depth_true)[valid]
+    bound = 5 * sigma[valid] + 0.5 * r.camera.depth_scale + 1e-3
+    assert np.all(err <= bound)
+    # and the noise is really there, with about the modelled spread
+    norm = ((z - f.depth_true) / np.maximum(sigma, 1e-6))[valid & (sigma > 1.5)]
+    assert 0.7 < norm.std() < 1.3
+    # holes at discontinuities: pixels next to object silhouettes lose depth more often
+    import cv2
+    edge = cv2.dilate(on_obj.astype(np.uint8), np.ones((5, 5), np.uint8)) > cv2.erode(on_obj.astype(np.uint8), np.ones((5, 5), np.uint8))
+    assert (~valid[edge]).mean() > 3 * (~valid[~edge & (f.depth_true < 3000)]).mean()
+
+
+def test_transparent_depth_is_mostly_invalid_on_glass(renderer_640):
+    r = renderer_640
+    f = r.render(2, 11, 9.9, "transparent")
+    z = r.camera.depth_to_mm(f.depth)
+    on_obj = f.label >= 0
+    assert on_obj.sum() > 2000
+    surface_ok = np.abs(z - f.depth_true) < 3 * r.sensor.depth_sigma(f.depth_true, r.camera.fx) + 2
+    # little of the glass reports its own surface; most of it reports nothing
+    assert (surface_ok & on_obj).sum() / on_obj.sum() < 0.25
+    assert (z[on_obj] == 0).mean() > 0.5
+    # away from the objects the transparent phase behaves like the opaque one
+    o = r.render(2, 11, 9.9, "opaque")
+    far = (f.label < 0) & (o.label < 0)
+    assert (f.depth[far] > 0).mean() > 0.9
+
+
+def test_transparent_rgb_shows_the_background_through_the_glass(renderer_640):
+    r = renderer_640
+    t = r.render(0, 3, 2.7, "transparent")
+    o = r.render(0, 3, 2.7, "opaque")
+    on = t.label >= 0
+    # the glass is not a flat colour: it carries the texture behind it
+    assert t.rgb[on].std(axis=0).mean() > 10
+    # the two phases agree off the objects and differ on them
+    off = ~on & (o.label < 0)
+    assert np.abs(t.rgb[off].astype(int) - o.rgb[off]).mean() < 3
+    assert np.abs(t.rgb[on].astype(int) - o.rgb[on]).mean() > 15
+
+
+def test_masks_agree_with_the_geometry(renderer_640):
+    r = renderer_640
+    f = r.render(1, 0, 123.0, "transparent")
+    full = r.full_masks(f.poses)
+    for i, (pl, T) in enumerate(zip(r.scene.placements, f.poses)):
+        visib = f.label == i
+        assert not (visib & ~full[i]).any()  # visible part of the full silhouette
+        # surface samples posed with the truth pose project into the full mask
+        obj = get_object(pl.obj_id)
+        uv, zc = r.camera.project(transform_points(T, obj.sample_surface(2000, seed=1)))
+        ok = r.camera.visible(uv, zc)
+        ui, vi = np.rint(uv[ok]).astype(int).T
+        assert full[i][vi, ui].mean() > 0.97
+
+
+# ------------------------------------------------------------------------------- session
+def test_session_is_complete_and_consistent(small_session, small_cfg):
+    s = RawSession.open(small_session)
+    assert s.info.scene_id == "multi/08"
+    assert s.missing_frames() == []
+    assert len(s.entries) == 2 * small_cfg.n_arms * small_cfg.steps
+    for e in s.entries:
+        assert s.verify_file(e) == []
+    truth = read_scene(small_session / "truth")
+    assert sorted(truth.im_ids()) == list(range(small_cfg.n_arms * small_cfg.steps))
+    # the truth motion between consecutive steps is a rotation by step_deg about the table axis
+    info = read_session(small_session)
+    for arm in range(info.n_arms):
+        a = truth.gt[arm * info.steps][0]
+        b = truth.gt[arm * info.steps + 1][0]
+        Ra = np.asarray(a["cam_R_m2c"]).reshape(3, 3)
+        Rb = np.asarray(b["cam_R_m2c"]).reshape(3, 3)
+        assert np.degrees(rotation_angle(Ra, Rb)) == pytest.approx(small_cfg.step_deg, abs=1e-6)
+    # truth visible masks are the ray-cast labels: recompute one frame
+    r = make_renderer(small_cfg, info)
+    f = r.render(1, 2, 2 * small_cfg.step_deg, "transparent")
+    im_id = 1 * info.steps + 2
+    for g in range(len(f.poses)):
+        assert np.array_equal(truth.mask(im_id, g, visib=True), f.label == g)
+    assert np.array_equal(s.load_rgb("transparent", 1, 2), f.rgb)
+
+
+def test_multi_object_scene_has_occlusion(small_session):
+    truth = read_scene(small_session / "truth")
+    fracs = [g["visib_fract"] for im in truth.gt_info.values() for g in im]
+    assert min(fracs) < 0.9
+
+
+def test_resume_rerenders_missing_frames_identically(tmp_path, small_cfg, small_session):
+    out = tmp_path / "s"
+    cfg = SimSessionConfig(**{**small_cfg.__dict__, "steps": 2, "n_arms": 1})
+    simulate_session(cfg, out, show_progress=False)
+    before = {p.relative_to(out): sha256_file(p) for p in out.rglob("*.png")}
+    # drop the last journal line and its files, as a crash mid-frame would
+    lines = (out / "journal.jsonl").read_text().splitlines()
+    (out / "journal.jsonl").write_text("\n".join(lines[:-1]) + "\n")
+    (out / "opaque/arm0/rgb/000001.png").unlink()
+    simulate_session(cfg, out, show_progress=False)
+    after = {p.relative_to(out): sha256_file(p) for p in out.rglob("*.png")}
+    assert before == after
+    assert len(RawSession.open(out).entries) == 4
+
+
+def test_session_refuses_a_folder_of_another_session(tmp_path, small_cfg):
+    out = tmp_path / "s"
+    cfg = SimSessionConfig(**{**small_cfg.__dict__, "steps": 1, "n_arms": 1})
+    simulate_session(cfg, out, show_progress=False, truth=False)
+    before = (out / "session.json").read_bytes()
+    other = SimSessionConfig(**{**cfg.__dict__, "scene_id": "single/03"})
+    with pytest.raises(TdofError, match="different session"):
+        simulate_session(other, out, show_progress=False)
+    assert (out / "session.json").read_bytes() == before
