@@ -28,7 +28,8 @@ from tdof20.o3d import o3d
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout
 from tdof20.sim.scenes import SceneSpec
-from tdof20.sim.sensor import SensorModel, smooth_field, stereo_depth
+from tdof20.sim.sensor import (SensorModel, depth_edges, smooth_field, stereo_depth, stereo_holes,
+                               stereo_occlusion)
 from tdof20.sim.textures import make_sticker, room_albedo
 
 PHASES = ("transparent", "opaque")
@@ -146,11 +147,9 @@ class SimRenderer:
         self._faces_all = np.concatenate([f.astype(np.int64) + o for f, o in zip(self._obj_faces, v_off)])
         self._face_offset = np.concatenate([[0], np.cumsum([len(f) for f in self._obj_faces])[:-1]]).astype(np.int64)
         self._vnormals_all = np.concatenate(self._obj_vnormals)
-        self._bbox_corners = []
-        for obj in self.objects:
-            lo, hi = obj.vertices.min(0), obj.vertices.max(0)
-            self._bbox_corners.append(np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                                                for z in (lo[2], hi[2])]))
+        self._hulls = [np.asarray(trimesh.Trimesh(o.vertices, o.faces, process=False).convex_hull.vertices)
+                       for o in self.objects]
+
 
     # ------------------------------------------------------------------ helpers
     def _cast(self, scene, origin: np.ndarray, dirs: np.ndarray) -> dict:
@@ -234,8 +233,10 @@ class SimRenderer:
         h, w = self.camera.height, self.camera.width
         xy = (points[:, :2] - np.asarray(self.layout.table_centre[:2])).astype(np.float32)
         top_idx = np.flatnonzero(top)
+        occluded, edges = stereo_holes(z.reshape(h, w), self.camera.fx, self.sensor)
         bg = {"z": z.reshape(h, w), "colour": colour.reshape(h, w, 3).astype(np.float32),
-              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_maps": self._sticker_maps(xy[top_idx])}
+              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_maps": self._sticker_maps(xy[top_idx]),
+              "occluded": occluded, "edges": edges}
         self._bg_cache[arm] = bg
         return bg
 
@@ -244,12 +245,19 @@ class SimRenderer:
         T_cam_table = invert(self.T_base_cams[arm]) @ self.layout.T_base_table(angle_deg)
         return [T_cam_table @ p.T_table_obj for p in self.scene.placements]
 
-    def _roi(self, poses: list[np.ndarray]) -> np.ndarray:
-        """Pixel mask (H,W) of the projected bounding boxes of the objects."""
-        roi = np.zeros((self.camera.height, self.camera.width), bool)
-        for T, corners in zip(poses, self._bbox_corners):
-            roi |= self._roi_single(T, corners)
-        return roi
+    def _roi(self, poses: list[np.ndarray], hulls: list[np.ndarray] | None = None) -> np.ndarray:
+        """Pixel mask (H,W) where a ray can meet one of the objects: the filled projections of
+        their convex hulls, grown by a pixel. Everything when an object reaches behind the camera."""
+        roi = np.zeros((self.camera.height, self.camera.width), np.uint8)
+        for T, hull in zip(poses, hulls if hulls is not None else self._hulls):
+            pc = transform_points(T, hull)
+            if np.any(pc[:, 2] <= 1.0):
+                return np.ones(roi.shape, bool)
+            uv, _ = self.camera.project(pc)
+            pts = cv2.convexHull(np.rint(uv).astype(np.int32))
+            cv2.fillConvexPoly(roi, pts, 1)
+            cv2.polylines(roi, [pts], True, 1, 2)
+        return roi.astype(bool)
 
     # ------------------------------------------------------------------ rendering
     def frame_rng(self, phase: str, arm: int, step: int) -> np.random.Generator:
@@ -269,8 +277,8 @@ class SimRenderer:
         T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ T_base_cam
         R_cam_table = T_table_cam[:3, :3].T
 
-        roi = self._roi(poses).reshape(-1)
-        idx = np.flatnonzero(roi)
+        roi2d = self._roi(poses)
+        idx = np.flatnonzero(roi2d)
         rays_cam = self._rays_cam[idx]
         hit = self._cast(self._objects, T_table_cam[:3, 3], rays_cam @ T_table_cam[:3, :3].T.astype(np.float32))
         z_obj_roi = hit["t_hit"].astype(np.float32)
@@ -317,9 +325,10 @@ class SimRenderer:
         z_obj_img = z_obj.reshape(h, w)
         glass = (label >= 0).reshape(h, w)
         if phase == "opaque":
-            z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform)
+            z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform,
+                                    self._holes(z_true, bg, roi2d))
         else:
-            z_sensor = self._glass_depth(z_obj_img, bg["z"], glass, rng, noise, uniform)
+            z_sensor = self._glass_depth(z_obj_img, bg, glass, roi2d, rng, noise, uniform)
         depth = cam.mm_to_depth(z_sensor)
         return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
 
@@ -371,10 +380,31 @@ class SimRenderer:
         col = (1 - F)[:, None] * seen * trans + (F * env)[:, None] + spec[:, None]
         return np.clip(col, 0, 1)
 
-    def _glass_depth(self, z_obj, z_bg, glass, rng, noise, uniform):
+    def _holes(self, z: np.ndarray, bg: dict, roi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stereo holes of ``z``, which equals the cached background outside ``roi``: the
+        occlusions change only on the rows of the ROI, the edges only around its bounding box."""
+        rows = np.flatnonzero(roi.any(axis=1))
+        if not len(rows):
+            return bg["occluded"], bg["edges"]
+        colsnz = np.flatnonzero(roi.any(axis=0))
+        h, w = z.shape
+        v0, v1 = rows[0], rows[-1] + 1
+        occluded = bg["occluded"].copy()
+        occluded[v0:v1] = stereo_occlusion(z[v0:v1], self.camera.fx, self.sensor.baseline_mm)
+        a0, a1 = max(v0 - 2, 0), min(v1 + 2, h)
+        b0, b1 = max(colsnz[0] - 2, 0), min(colsnz[-1] + 3, w)
+        edges = bg["edges"].copy()
+        e = depth_edges(z[a0:a1, b0:b1], self.sensor.edge_jump)
+        c0, c1 = max(v0 - 1, 0), min(v1 + 1, h)
+        d0, d1 = max(colsnz[0] - 1, 0), min(colsnz[-1] + 2, w)
+        edges[c0:c1, d0:d1] = e[c0 - a0:c1 - a0, d0 - b0:d1 - b0]
+        return occluded, edges
+
+    def _glass_depth(self, z_obj, bg, glass, roi, rng, noise, uniform):
         """Active stereo on glass: most glass pixels return nothing, some the background behind,
         the rest the glass surface with large noise; flying pixels at the silhouettes."""
         s = self.sensor
+        z_bg = bg["z"]
         z = z_bg.copy()
         if glass.any():
             field_ = smooth_field(glass.shape, rng)
@@ -382,7 +412,7 @@ class SimRenderer:
             q1, q2 = np.quantile(fv, [s.glass_missing, min(1.0, s.glass_missing + s.glass_behind)])
             surface = z_obj[glass] + s.glass_sigma_mm * noise[glass][::-1]
             z[glass] = np.where(fv < q1, 0.0, np.where(fv < q2, z_bg[glass], surface))
-        out = stereo_depth(z, self.camera.fx, s, rng, noise, uniform)
+        out = stereo_depth(z, self.camera.fx, s, rng, noise, uniform, self._holes(z, bg, roi))
         if glass.any() and s.rim_px > 0 and s.flying_fraction > 0:
             # work in the bounding box of the glass pixels grown by the rim width
             vs, us = np.nonzero(glass)
@@ -406,25 +436,11 @@ class SimRenderer:
         """Unoccluded silhouette (H,W) bool of every object at the given poses."""
         h, w = self.camera.height, self.camera.width
         out = []
-        for T, corners, ms in zip(poses, self._bbox_corners, self._model_scenes):
-            roi = self._roi_single(T, corners)
-            idx = np.flatnonzero(roi)
+        for T, hull, ms in zip(poses, self._hulls, self._model_scenes):
+            idx = np.flatnonzero(self._roi([T], [hull]))
             T_obj_cam = invert(T)
             hit = self._cast(ms, T_obj_cam[:3, 3], self._rays_cam[idx] @ T_obj_cam[:3, :3].T.astype(np.float32))
             m = np.zeros(h * w, bool)
             m[idx[np.isfinite(hit["t_hit"])]] = True
             out.append(m.reshape(h, w))
         return out
-
-    def _roi_single(self, T, corners):
-        h, w = self.camera.height, self.camera.width
-        roi = np.zeros((h, w), bool)
-        pc = transform_points(T, corners)
-        if np.any(pc[:, 2] <= 1.0):
-            roi[:] = True
-            return roi
-        uv, _ = self.camera.project(pc)
-        u0, v0 = np.floor(uv.min(0)).astype(int) - 1
-        u1, v1 = np.ceil(uv.max(0)).astype(int) + 2
-        roi[max(v0, 0):min(v1, h), max(u0, 0):min(u1, w)] = True
-        return roi

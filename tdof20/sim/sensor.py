@@ -83,20 +83,26 @@ def depth_edges(z: np.ndarray, rel_jump: float) -> np.ndarray:
     return (zf > 0) & (mx < big) & ((mx - mn) > rel_jump * zf)
 
 
+def stereo_holes(z: np.ndarray, f_px: float, model: SensorModel) -> tuple[np.ndarray, np.ndarray]:
+    """(occluded, edges): the two geometric causes of stereo holes, bool (H,W) each."""
+    return stereo_occlusion(z, f_px, model.baseline_mm), depth_edges(z, model.edge_jump)
+
+
 def stereo_depth(z_true: np.ndarray, f_px: float, model: SensorModel, rng: np.random.Generator,
-                 noise: np.ndarray | None = None, uniform: np.ndarray | None = None) -> np.ndarray:
+                 noise: np.ndarray | None = None, uniform: np.ndarray | None = None,
+                 holes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """True depth (H,W) mm -> what an active stereo camera reports: noise growing with z^2,
     holes where the second camera is occluded and at discontinuities, range limits.
-    ``noise`` (standard normal) and ``uniform`` ([0,1)) images may be passed in to save drawing them."""
+    ``noise`` (standard normal) and ``uniform`` ([0,1)) images may be passed in to save drawing
+    them; ``holes`` = :func:`stereo_holes` of ``z_true`` when the caller has it already."""
     z = np.asarray(z_true, np.float32)
     if noise is None:
         noise = rng.standard_normal(z.shape, dtype=np.float32)
     if uniform is None:
         uniform = rng.random(z.shape, dtype=np.float32)
+    occluded, edges = holes if holes is not None else stereo_holes(z, f_px, model)
     out = z + model.depth_sigma(z, f_px).astype(np.float32) * noise
-    holes = stereo_occlusion(z, f_px, model.baseline_mm)
-    edges = depth_edges(z, model.edge_jump)
-    holes |= edges & (uniform < model.edge_dropout)
-    holes |= (z < model.min_depth_mm) | (z > model.max_depth_mm)
-    out[holes | (z <= 0)] = 0.0
+    drop = occluded | (edges & (uniform < model.edge_dropout))
+    drop |= (z < model.min_depth_mm) | (z > model.max_depth_mm)
+    out[drop] = 0.0
     return out
