@@ -28,8 +28,8 @@ from tdof20.o3d import o3d
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout
 from tdof20.sim.scenes import SceneSpec
-from tdof20.sim.sensor import (SensorModel, depth_edges, smooth_field, stereo_depth, stereo_holes,
-                               stereo_occlusion)
+from tdof20.sim.sensor import (SensorModel, depth_edges, disparity_slack, smooth_field, stereo_depth,
+                               stereo_holes, stereo_occlusion)
 from tdof20.sim.textures import make_sticker, room_albedo
 
 PHASES = ("transparent", "opaque")
@@ -91,10 +91,12 @@ class SimRenderer:
         self.seed = int(seed)
         self.objects = [get_object(p.obj_id) for p in scene.placements]
         self._rays_cam = camera.pixel_rays().reshape(-1, 3).astype(np.float32)
+        self._dirs_cam = self._rays_cam / np.linalg.norm(self._rays_cam, axis=1, keepdims=True)
         self._build_world()
         self._build_objects()
-        sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius, 768)
-        self.sticker = np.clip(sticker * 255 + 0.5, 0, 255).astype(np.uint8)
+        self.sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius, 768)
+        # the table top is a plane under a directional light: one Lambert factor for all of it
+        self._sticker_lit = (self.sticker * (AMBIENT + (1 - AMBIENT) * max(LIGHT_DIR[2], 0.0))).astype(np.float32)
         self._bg_cache: dict[int, dict] = {}
         rng = np.random.default_rng([self.seed, 99])
         h, w = camera.height, camera.width
@@ -142,11 +144,9 @@ class SimRenderer:
             ms = o3d.t.geometry.RaycastingScene()
             ms.add_triangles(o3d.core.Tensor(obj.vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
             self._model_scenes.append(ms)
-        sizes_v = [len(v) for v in self._obj_vnormals]
-        v_off = np.concatenate([[0], np.cumsum(sizes_v)[:-1]]).astype(np.int64)
-        self._faces_all = np.concatenate([f.astype(np.int64) + o for f, o in zip(self._obj_faces, v_off)])
+        # the three vertex normals of every face, all objects concatenated: (F, 9), table frame
+        self._face_vn = np.concatenate([vn[f].reshape(-1, 9) for f, vn in zip(self._obj_faces, self._obj_vnormals)])
         self._face_offset = np.concatenate([[0], np.cumsum([len(f) for f in self._obj_faces])[:-1]]).astype(np.int64)
-        self._vnormals_all = np.concatenate(self._obj_vnormals)
         self._hulls = [np.asarray(trimesh.Trimesh(o.vertices, o.faces, process=False).convex_hull.vertices)
                        for o in self.objects]
 
@@ -159,37 +159,32 @@ class SimRenderer:
         res = scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in res.items()}
 
-    def _sticker_maps(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """Table-top points (N,2) mm, world-aligned, relative to the table centre -> their sticker
-        pixel coordinates relative to the sticker centre at angle 0, as two (rows, 1024) arrays
-        (cv2.remap needs maps shorter than 32767 in each dimension), and N."""
+    def _sticker_maps(self, xy: np.ndarray, on_top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Table-top points (..., 2) mm, world-aligned, relative to the table centre -> their
+        sticker pixel offsets from the sticker centre at angle 0 (two float32 arrays). Points off
+        the top get offsets so large that every rotation keeps them outside the sticker."""
         mm = self.sticker_mm_px
-        n = len(xy)
-        cols = 1024
-        rows = max(1, -(-n // cols))
-        dx = np.zeros(rows * cols, np.float32)
-        dy = np.zeros(rows * cols, np.float32)
-        dx[:n] = xy[:, 0] / mm
-        dy[:n] = -xy[:, 1] / mm
-        return dx.reshape(rows, cols), dy.reshape(rows, cols), n
+        dx = np.where(on_top, xy[..., 0] / mm, 1e7).astype(np.float32)
+        dy = np.where(on_top, -xy[..., 1] / mm, 1e7).astype(np.float32)
+        return dx, dy
 
-    def _sample_sticker(self, xy: np.ndarray | None, angle_deg: float, maps=None) -> np.ndarray:
-        """Sticker albedo (N,3) float32 at table-top points (N,2) once the table has turned by
-        ``angle_deg`` counter-clockwise: the points are rotated back by the angle into the sticker."""
-        dx, dy, n = maps if maps is not None else self._sticker_maps(xy)
+    def _draw_sticker(self, dst: np.ndarray, maps: tuple[np.ndarray, np.ndarray], angle_deg: float) -> np.ndarray:
+        """Draw the lit sticker, turned by ``angle_deg`` counter-clockwise, into ``dst`` (float32
+        RGB, the same shape as the maps plus a channel axis) where the maps fall on it."""
+        dx, dy = maps
         a = np.radians(angle_deg)
-        c, s_ = np.float32(np.cos(a)), np.float32(np.sin(a))
-        centre = np.float32((self.sticker.shape[0] - 1) / 2.0)
-        # image axes: x right = table x, y down = -table y; Rz(-a) in those axes
-        mx = c * dx - s_ * dy + centre
-        my = s_ * dx + c * dy + centre
-        out = cv2.remap(self.sticker, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        return out.reshape(-1, 3)[:n].astype(np.float32) * np.float32(1 / 255)
+        c, s_ = float(np.cos(a)), float(np.sin(a))
+        centre = (self._sticker_lit.shape[0] - 1) / 2.0
+        # image axes: x right = table x, y down = -table y; rotate back by the angle (Rz(-a))
+        mx = cv2.addWeighted(dx, c, dy, -s_, centre)
+        my = cv2.addWeighted(dx, s_, dy, c, centre)
+        cv2.remap(self._sticker_lit, mx, my, cv2.INTER_LINEAR, dst=dst, borderMode=cv2.BORDER_TRANSPARENT)
+        return dst
 
-    def _world_colour(self, points: np.ndarray, normals: np.ndarray, gids: np.ndarray, dirs: np.ndarray,
-                      angle_deg: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """World hits (N) -> (albedo (N,3), Lambert shade (N,), on-sticker (N,) bool).
-        The sticker albedo is looked up only when ``angle_deg`` is given (else left black)."""
+    def _world_colour(self, points: np.ndarray, normals: np.ndarray, gids: np.ndarray,
+                      dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World hits (N) -> (albedo (N,3), Lambert shade (N,), on-sticker (N,) bool); the
+        sticker, which turns with the table, is left black (see :meth:`_draw_sticker`)."""
         n = np.where((np.sum(normals * dirs, axis=1) > 0)[:, None], -normals, normals)
         shade = (AMBIENT + (1 - AMBIENT) * np.clip(n @ LIGHT_DIR, 0, 1)).astype(np.float32)
         albedo = np.zeros((len(points), 3), np.float32)
@@ -207,9 +202,6 @@ class SimRenderer:
                 albedo[sel] = self._room_surface(points[sel])
             else:
                 albedo[sel] = room_albedo(mat, points[sel])
-        if angle_deg is not None and is_top.any():
-            xy = points[is_top, :2] - np.asarray(self.layout.table_centre[:2])
-            albedo[is_top] = self._sample_sticker(xy, angle_deg)
         return albedo, shade, is_top
 
     def _room_surface(self, p: np.ndarray) -> np.ndarray:
@@ -228,15 +220,16 @@ class SimRenderer:
         hit = self._cast(self._world, T[:3, 3], dirs)
         z = hit["t_hit"].astype(np.float32)
         points = T[:3, 3] + dirs * z[:, None]
-        albedo, shade, top = self._world_colour(points, hit["primitive_normals"], hit["geometry_ids"], dirs, None)
+        albedo, shade, top = self._world_colour(points, hit["primitive_normals"], hit["geometry_ids"], dirs)
         colour = albedo * shade[:, None]
         h, w = self.camera.height, self.camera.width
         xy = (points[:, :2] - np.asarray(self.layout.table_centre[:2])).astype(np.float32)
-        top_idx = np.flatnonzero(top)
         occluded, edges = stereo_holes(z.reshape(h, w), self.camera.fx, self.sensor)
         bg = {"z": z.reshape(h, w), "colour": colour.reshape(h, w, 3).astype(np.float32),
-              "top_idx": top_idx, "top_shade": shade[top_idx, None], "top_maps": self._sticker_maps(xy[top_idx]),
-              "occluded": occluded, "edges": edges}
+              "sticker_maps": self._sticker_maps(xy.reshape(h, w, 2), top.reshape(h, w)),
+              "occluded": occluded, "edges": edges,
+              "slack_rmax": np.maximum.accumulate(disparity_slack(z.reshape(h, w), self.camera.fx,
+                                                                  self.sensor.baseline_mm)[:, ::-1], axis=1)[:, ::-1]}
         self._bg_cache[arm] = bg
         return bg
 
@@ -245,19 +238,27 @@ class SimRenderer:
         T_cam_table = invert(self.T_base_cams[arm]) @ self.layout.T_base_table(angle_deg)
         return [T_cam_table @ p.T_table_obj for p in self.scene.placements]
 
-    def _roi(self, poses: list[np.ndarray], hulls: list[np.ndarray] | None = None) -> np.ndarray:
-        """Pixel mask (H,W) where a ray can meet one of the objects: the filled projections of
-        their convex hulls, grown by a pixel. Everything when an object reaches behind the camera."""
-        roi = np.zeros((self.camera.height, self.camera.width), np.uint8)
+    def _roi(self, poses: list[np.ndarray], hulls: list[np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
+        """(mask (H,W), box) where a ray can meet one of the objects: the filled projections of
+        their convex hulls grown by a pixel, and the bounding box (v0, v1, u0, u1) of the mask
+        (None when empty). Everything when an object reaches behind the camera."""
+        h, w = self.camera.height, self.camera.width
+        roi = np.zeros((h, w), np.uint8)
+        lo, hi = np.array([np.inf, np.inf]), np.array([-np.inf, -np.inf])
         for T, hull in zip(poses, hulls if hulls is not None else self._hulls):
             pc = transform_points(T, hull)
             if np.any(pc[:, 2] <= 1.0):
-                return np.ones(roi.shape, bool)
+                return np.ones((h, w), bool), (0, h, 0, w)
             uv, _ = self.camera.project(pc)
             pts = cv2.convexHull(np.rint(uv).astype(np.int32))
             cv2.fillConvexPoly(roi, pts, 1)
             cv2.polylines(roi, [pts], True, 1, 2)
-        return roi.astype(bool)
+            lo, hi = np.minimum(lo, pts.reshape(-1, 2).min(0)), np.maximum(hi, pts.reshape(-1, 2).max(0))
+        m = max(2, self.sensor.rim_px + 1)  # room for the flying-pixel band
+        u0, v0 = np.maximum(lo - m, 0).astype(int)
+        u1, v1 = (np.minimum(hi + m + 1, [w, h])).astype(int)
+        box = (v0, v1, u0, u1) if (v1 > v0 and u1 > u0) else None
+        return roi.astype(bool), box
 
     # ------------------------------------------------------------------ rendering
     def frame_rng(self, phase: str, arm: int, step: int) -> np.random.Generator:
@@ -277,7 +278,7 @@ class SimRenderer:
         T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ T_base_cam
         R_cam_table = T_table_cam[:3, :3].T
 
-        roi2d = self._roi(poses)
+        roi2d, box = self._roi(poses)
         idx = np.flatnonzero(roi2d)
         rays_cam = self._rays_cam[idx]
         hit = self._cast(self._objects, T_table_cam[:3, 3], rays_cam @ T_table_cam[:3, :3].T.astype(np.float32))
@@ -290,18 +291,16 @@ class SimRenderer:
         z_obj[idx[vis_roi]] = z_obj_roi[vis_roi]
 
         # background colour: static room + the sticker at this table angle
-        colour = bg["colour"].copy().reshape(-1, 3)
-        if len(bg["top_idx"]):
-            colour[bg["top_idx"]] = self._sample_sticker(None, angle_deg, bg["top_maps"]) * bg["top_shade"]
+        colour = self._draw_sticker(bg["colour"].copy(), bg["sticker_maps"], angle_deg).reshape(-1, 3)
 
         vi = idx[vis_roi]  # flat pixel indices of visible object pixels
         if len(vi):
             gid = hit["geometry_ids"][vis_roi]
             n_table = self._interp_normals(gid, hit["primitive_ids"][vis_roi], hit["primitive_uvs"][vis_roi])
-            n_cam = n_table @ R_cam_table.T
-            d_cam = rays_cam[vis_roi] / np.linalg.norm(rays_cam[vis_roi], axis=1, keepdims=True)
-            n_cam = np.where((np.sum(n_cam * d_cam, axis=1) > 0)[:, None], -n_cam, n_cam)
-            L_cam = T_base_cam[:3, :3].T @ LIGHT_DIR
+            n_cam = (n_table @ R_cam_table.T.astype(np.float32))
+            d_cam = self._dirs_cam[vi]
+            n_cam *= np.where(np.einsum("ij,ij->i", n_cam, d_cam) > 0, -1.0, 1.0).astype(np.float32)[:, None]
+            L_cam = (T_base_cam[:3, :3].T @ LIGHT_DIR).astype(np.float32)
             if phase == "opaque":
                 albedo = np.stack([_twin_colour(self.objects[g].obj_id) for g in range(len(self.objects))])[gid]
                 lam = AMBIENT + (1 - AMBIENT) * np.clip(n_cam @ L_cam, 0, 1)
@@ -311,7 +310,7 @@ class SimRenderer:
                 colour[vi] = albedo * lam[:, None] + spec[:, None]
             else:
                 colour[vi] = self._glass_colour(vi, z_obj[vi], d_cam, n_cam, L_cam, T_base_cam,
-                                                colour.reshape(h, w, 3).copy(), bg["z"])
+                                                colour.reshape(h, w, 3), bg["z"])
 
         # RGB with sensor noise
         oy, ox = rng.integers(0, self._pad, 2)
@@ -326,19 +325,20 @@ class SimRenderer:
         glass = (label >= 0).reshape(h, w)
         if phase == "opaque":
             z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform,
-                                    self._holes(z_true, bg, roi2d))
+                                    self._holes(z_true, bg, box))
         else:
-            z_sensor = self._glass_depth(z_obj_img, bg, glass, roi2d, rng, noise, uniform)
+            z_sensor = self._glass_depth(z_obj_img, bg, glass, box, rng, noise, uniform)
         depth = cam.mm_to_depth(z_sensor)
         return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
 
     def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Smooth (barycentric) vertex normals at ray hits, table frame, (N,3) unit."""
-        f = self._faces_all[self._face_offset[gid] + prim]  # (N,3) global vertex ids
-        vn = self._vnormals_all
-        u, v = uv[:, 0:1], uv[:, 1:2]
-        n = (1 - u - v) * vn[f[:, 0]] + u * vn[f[:, 1]] + v * vn[f[:, 2]]
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+        g = np.take(self._face_vn, self._face_offset[gid] + prim, axis=0)  # one gather of 9 floats a hit
+        w = np.empty((len(uv), 3), np.float32)
+        w[:, 1:] = uv
+        w[:, 0] = 1.0 - uv[:, 0] - uv[:, 1]
+        n = np.einsum("nk,nkj->nj", w, g.reshape(-1, 3, 3))
+        n /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-9)[:, None]
         return n
 
     def _glass_colour(self, vi, z, d_cam, n_cam, L_cam, T_base_cam, background, z_bg):
@@ -347,21 +347,22 @@ class SimRenderer:
         there), tinted and darkened with path length, plus Fresnel reflection and highlights."""
         g = self.glass
         cam = self.camera
-        cos_i = np.clip(-np.sum(d_cam * n_cam, axis=1), 1e-3, 1.0)
-        eta = 1.0 / g.ior
-        k = 1.0 - eta ** 2 * (1.0 - cos_i ** 2)
+        f32 = np.float32
+        cos_i = np.clip(-np.einsum("ij,ij->i", d_cam, n_cam), 1e-3, 1.0)
+        eta = f32(1.0 / g.ior)
+        k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
         refr = eta * d_cam + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * n_cam
-        bent = d_cam + g.refraction * (refr - d_cam)
+        bent = d_cam + f32(g.refraction) * (refr - d_cam)
         p = self._rays_cam[vi] * z[:, None]
-        bz = np.maximum(bent[:, 2], 0.05)
+        bz = np.maximum(bent[:, 2], f32(0.05))
         zb = z_bg.reshape(-1)[vi]
         for _ in range(2):  # follow the bent ray to the background depth, twice to settle
             q = p + ((np.maximum(zb - p[:, 2], 0.0) / bz)[:, None]) * bent
-            u = q[:, 0] / q[:, 2] * cam.fx + cam.cx
-            v = q[:, 1] / q[:, 2] * cam.fy + cam.cy
-            ui = np.clip(np.rint(u), 0, cam.width - 1).astype(np.int64)
-            vv = np.clip(np.rint(v), 0, cam.height - 1).astype(np.int64)
-            zb = np.minimum(z_bg[vv, ui], 1e5)
+            u = q[:, 0] / q[:, 2] * f32(cam.fx) + f32(cam.cx)
+            v = q[:, 1] / q[:, 2] * f32(cam.fy) + f32(cam.cy)
+            ui = np.clip(np.rint(u), 0, cam.width - 1).astype(np.intp)
+            vv = np.clip(np.rint(v), 0, cam.height - 1).astype(np.intp)
+            zb = np.minimum(z_bg[vv, ui], f32(1e5))
         n = len(vi)
         cols = 1024
         rows = max(1, -(-n // cols))
@@ -370,66 +371,66 @@ class SimRenderer:
         mx[:n], my[:n] = u, v
         seen = cv2.remap(background, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
-        trans = np.exp(-g.absorption / cos_i)[:, None] * np.asarray(g.tint, np.float32)
-        F = g.fresnel_f0 + (1 - g.fresnel_f0) * (1 - cos_i) ** 5
-        refl_dir_z = (d_cam + 2 * cos_i[:, None] * n_cam) @ T_base_cam[2, :3]
-        env = 0.55 + 0.4 * np.clip(refl_dir_z, -1, 1)
+        F = f32(g.fresnel_f0) + f32(1 - g.fresnel_f0) * (1 - cos_i) ** 5
+        refl_z = (d_cam + (2 * cos_i)[:, None] * n_cam) @ T_base_cam[2, :3].astype(np.float32)
         hvec = L_cam[None, :] - d_cam
-        hvec /= np.linalg.norm(hvec, axis=1, keepdims=True)
-        spec = g.specular * np.clip(np.sum(n_cam * hvec, axis=1), 0, 1) ** g.shininess
-        col = (1 - F)[:, None] * seen * trans + (F * env)[:, None] + spec[:, None]
+        n_dot_h = np.einsum("ij,ij->i", n_cam, hvec) / np.sqrt(np.einsum("ij,ij->i", hvec, hvec))
+        # Blinn-Phong lobe, written as exp(-shininess (1 - n.h)) ~ (n.h)^shininess, cheaper
+        spec = f32(g.specular) * np.exp(f32(-g.shininess) * (1 - np.clip(n_dot_h, 0, 1)))
+        add = F * (f32(0.55) + f32(0.4) * np.clip(refl_z, -1, 1)) + spec
+        weight = (1 - F) * np.exp(f32(-g.absorption) / cos_i)
+        col = seen * (weight[:, None] * np.asarray(g.tint, np.float32)) + add[:, None]
         return np.clip(col, 0, 1)
 
-    def _holes(self, z: np.ndarray, bg: dict, roi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Stereo holes of ``z``, which equals the cached background outside ``roi``: the
-        occlusions change only on the rows of the ROI, the edges only around its bounding box."""
-        rows = np.flatnonzero(roi.any(axis=1))
-        if not len(rows):
+    def _holes(self, z: np.ndarray, bg: dict, box: tuple | None) -> tuple[np.ndarray, np.ndarray]:
+        """Stereo holes of ``z``, which equals the cached background outside ``box`` (v0, v1, u0,
+        u1): the occlusions change only on its rows, left of its right end; the edges only
+        around it."""
+        if box is None:
             return bg["occluded"], bg["edges"]
-        colsnz = np.flatnonzero(roi.any(axis=0))
+        v0, v1, u0, u1 = box
         h, w = z.shape
-        v0, v1 = rows[0], rows[-1] + 1
         occluded = bg["occluded"].copy()
-        occluded[v0:v1] = stereo_occlusion(z[v0:v1], self.camera.fx, self.sensor.baseline_mm)
-        a0, a1 = max(v0 - 2, 0), min(v1 + 2, h)
-        b0, b1 = max(colsnz[0] - 2, 0), min(colsnz[-1] + 3, w)
+        # a pixel is hidden only by pixels to its right: right of the box nothing changes
+        tail = bg["slack_rmax"][v0:v1, u1] if u1 < w else None
+        occluded[v0:v1, :u1] = stereo_occlusion(z[v0:v1, :u1], self.camera.fx, self.sensor.baseline_mm, tail=tail)
+        a0, a1, b0, b1 = max(v0 - 2, 0), min(v1 + 2, h), max(u0 - 2, 0), min(u1 + 2, w)
+        c0, c1, d0, d1 = max(v0 - 1, 0), min(v1 + 1, h), max(u0 - 1, 0), min(u1 + 1, w)
         edges = bg["edges"].copy()
         e = depth_edges(z[a0:a1, b0:b1], self.sensor.edge_jump)
-        c0, c1 = max(v0 - 1, 0), min(v1 + 1, h)
-        d0, d1 = max(colsnz[0] - 1, 0), min(colsnz[-1] + 2, w)
         edges[c0:c1, d0:d1] = e[c0 - a0:c1 - a0, d0 - b0:d1 - b0]
         return occluded, edges
 
-    def _glass_depth(self, z_obj, bg, glass, roi, rng, noise, uniform):
+    def _glass_depth(self, z_obj, bg, glass, box, rng, noise, uniform):
         """Active stereo on glass: most glass pixels return nothing, some the background behind,
-        the rest the glass surface with large noise; flying pixels at the silhouettes."""
+        the rest the glass surface with large noise; flying pixels at the silhouettes.
+        All glass lies inside ``box`` (v0, v1, u0, u1); the work is done there."""
         s = self.sensor
         z_bg = bg["z"]
         z = z_bg.copy()
-        if glass.any():
-            field_ = smooth_field(glass.shape, rng)
-            fv = field_[glass]
+        if box is None:
+            return stereo_depth(z, self.camera.fx, s, rng, noise, uniform, self._holes(z, bg, box))
+        v0, v1, u0, u1 = box
+        g = glass[v0:v1, u0:u1]
+        zo, zb = z_obj[v0:v1, u0:u1], z_bg[v0:v1, u0:u1]
+        if g.any():
+            fv = smooth_field(g.shape, rng)[g]
             q1, q2 = np.quantile(fv, [s.glass_missing, min(1.0, s.glass_missing + s.glass_behind)])
-            surface = z_obj[glass] + s.glass_sigma_mm * noise[glass][::-1]
-            z[glass] = np.where(fv < q1, 0.0, np.where(fv < q2, z_bg[glass], surface))
-        out = stereo_depth(z, self.camera.fx, s, rng, noise, uniform, self._holes(z, bg, roi))
-        if glass.any() and s.rim_px > 0 and s.flying_fraction > 0:
-            # work in the bounding box of the glass pixels grown by the rim width
-            vs, us = np.nonzero(glass)
-            m = s.rim_px + 1
-            v0, v1 = max(vs.min() - m, 0), min(vs.max() + m + 1, glass.shape[0])
-            u0, u1 = max(us.min() - m, 0), min(us.max() + m + 1, glass.shape[1])
-            g8 = glass[v0:v1, u0:u1].astype(np.uint8)
+            surface = zo[g] + s.glass_sigma_mm * noise[v0:v1, u0:u1][::-1, ::-1][g]
+            z[v0:v1, u0:u1][g] = np.where(fv < q1, 0.0, np.where(fv < q2, zb[g], surface))
+        out = stereo_depth(z, self.camera.fx, s, rng, noise, uniform, self._holes(z, bg, box))
+        if g.any() and s.rim_px > 0 and s.flying_fraction > 0:
+            # flying pixels: a band around the silhouettes (the box holds the hulls grown by 2 px;
+            # the band is cut to it)
+            g8 = g.astype(np.uint8)
             k = np.ones((2 * s.rim_px + 1, 2 * s.rim_px + 1), np.uint8)
             band = (cv2.dilate(g8, k) > 0) & (cv2.erode(g8, k) == 0)
             u_rand = uniform[v0:v1, u0:u1][::-1, ::-1]
             fly = band & (u_rand < s.flying_fraction)
-            zf = cv2.erode(np.where(g8 > 0, z_obj[v0:v1, u0:u1], np.float32(1e9)).astype(np.float32), k)
-            zb = z_bg[v0:v1, u0:u1]
+            zf = cv2.erode(np.where(g, zo, np.float32(1e9)).astype(np.float32), k)
             fly &= (zf < 1e9) & (zb > 0)
             wgt = u_rand[fly] / max(s.flying_fraction, 1e-6)
-            sub = out[v0:v1, u0:u1]
-            sub[fly] = wgt * zf[fly] + (1 - wgt) * zb[fly]
+            out[v0:v1, u0:u1][fly] = wgt * zf[fly] + (1 - wgt) * zb[fly]
         return out
 
     def full_masks(self, poses: list[np.ndarray]) -> list[np.ndarray]:
@@ -437,7 +438,7 @@ class SimRenderer:
         h, w = self.camera.height, self.camera.width
         out = []
         for T, hull, ms in zip(poses, self._hulls, self._model_scenes):
-            idx = np.flatnonzero(self._roi([T], [hull]))
+            idx = np.flatnonzero(self._roi([T], [hull])[0])
             T_obj_cam = invert(T)
             hit = self._cast(ms, T_obj_cam[:3, 3], self._rays_cam[idx] @ T_obj_cam[:3, :3].T.astype(np.float32))
             m = np.zeros(h * w, bool)

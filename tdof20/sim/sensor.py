@@ -57,20 +57,28 @@ def smooth_field(shape: tuple[int, int], rng: np.random.Generator, cell_px: int 
     return cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
 
 
-def stereo_occlusion(z: np.ndarray, f_px: float, baseline_mm: float, tol_px: float = 0.5) -> np.ndarray:
+def disparity_slack(z: np.ndarray, f_px: float, baseline_mm: float) -> np.ndarray:
+    """g(x) = d(x) - x per row, with disparity d = f b / z; -inf where there is no depth."""
+    valid = z > 0
+    d = np.where(valid, f_px * baseline_mm / np.where(valid, z, 1.0), -np.inf).astype(np.float32)
+    return d - np.arange(z.shape[1], dtype=np.float32)[None, :]
+
+
+def stereo_occlusion(z: np.ndarray, f_px: float, baseline_mm: float, tol_px: float = 0.5,
+                     tail: np.ndarray | None = None) -> np.ndarray:
     """Pixels that the second stereo camera cannot see (bool (H,W)).
 
     With disparity d(x) = f b / z, pixel x is hidden if some pixel x' > x on its row has
-    d(x') - d(x) > x' - x: a row-wise reverse running maximum of d(x) - x.
+    d(x') - d(x) > x' - x: a row-wise reverse running maximum of g(x) = d(x) - x.
+    ``tail`` (H,) is the maximum of g right of the last column when ``z`` holds only the left
+    part of the rows (default: nothing there).
     """
-    h, w = z.shape
-    valid = z > 0
-    d = np.where(valid, f_px * baseline_mm / np.where(valid, z, 1.0), -np.inf).astype(np.float32)
-    g = d - np.arange(w, dtype=np.float32)[None, :]
+    g = disparity_slack(z, f_px, baseline_mm)
     rmax = np.maximum.accumulate(g[:, ::-1], axis=1)[:, ::-1]
-    ahead = np.full_like(g, -np.inf)
+    ahead = np.empty_like(g)
     ahead[:, :-1] = rmax[:, 1:]
-    return valid & (ahead > g + tol_px)
+    ahead[:, -1] = -np.inf if tail is None else tail
+    return (z > 0) & (ahead > g + tol_px)
 
 
 def depth_edges(z: np.ndarray, rel_jump: float) -> np.ndarray:
