@@ -10,14 +10,19 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import struct
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+from isal import isal_zlib
 
 from tdof20.errors import TdofError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def atomic_write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> None:
@@ -74,19 +79,40 @@ def read_json(path: str | Path) -> Any:
         raise TdofError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", path) from None
 
 
+def _png_chunk(tag: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+
 def encode_png(image: np.ndarray, compression: int = 1) -> bytes:
-    """Encode an 8-bit colour (H,W,3 RGB), 8-bit grey (H,W) or uint16 (H,W) image as PNG bytes."""
+    """Encode an 8-bit colour (H,W,3 RGB), 8-bit grey (H,W) or uint16 (H,W) image as PNG bytes.
+
+    Written by hand over ISA-L's deflate (``isal``), because libpng's zlib deflate is the whole
+    cost of PNG writing and runs 4-7x slower at the same size. The container is plain PNG
+    (IHDR, one IDAT, IEND; every row with the Sub filter) that every decoder reads.
+    ``compression``: ISA-L level 0-3.
+    """
     img = np.ascontiguousarray(image)
     if img.ndim == 3:
         if img.shape[2] != 3 or img.dtype != np.uint8:
             raise ValueError(f"colour images must be (H,W,3) uint8, got {img.shape} {img.dtype}")
-        img = img[..., ::-1]  # RGB -> BGR for OpenCV
-    elif img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
+        rows, bpp, bit_depth, colour_type = img.reshape(img.shape[0], -1), 3, 8, 2
+    elif img.ndim == 2 and img.dtype == np.uint8:
+        rows, bpp, bit_depth, colour_type = img, 1, 8, 0
+    elif img.ndim == 2 and img.dtype == np.uint16:
+        rows = img.astype(">u2").view(np.uint8).reshape(img.shape[0], -1)
+        bpp, bit_depth, colour_type = 2, 16, 0
+    else:
         raise ValueError(f"single-channel images must be (H,W) uint8 or uint16, got {img.shape} {img.dtype}")
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
-    if not ok:  # pragma: no cover - OpenCV encodes any valid array
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
+    h, w = img.shape[:2]
+    if h == 0 or w == 0:
+        raise ValueError("cannot encode an empty image")
+    data = np.empty((h, rows.shape[1] + 1), np.uint8)
+    data[:, 0] = 1  # filter type Sub: each byte minus the byte one pixel to its left
+    data[:, 1:1 + bpp] = rows[:, :bpp]
+    np.subtract(rows[:, bpp:], rows[:, :-bpp], out=data[:, 1 + bpp:])
+    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, colour_type, 0, 0, 0)
+    idat = isal_zlib.compress(data.tobytes(), int(np.clip(compression, 0, 3)))
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", idat) + _png_chunk(b"IEND", b"")
 
 
 def write_png(path: str | Path, image: np.ndarray, compression: int = 1) -> bytes:
@@ -98,7 +124,7 @@ def write_png(path: str | Path, image: np.ndarray, compression: int = 1) -> byte
 
 def decode_png(data: bytes, path: str | Path = "<bytes>", kind: str = "any") -> np.ndarray:
     """Decode PNG bytes. kind: 'rgb' (H,W,3 uint8), 'depth' (H,W uint16), 'mask' (H,W uint8) or 'any'."""
-    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+    if not data.startswith(PNG_SIGNATURE):
         raise TdofError("not a PNG file (bad signature)", path)
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
