@@ -63,7 +63,7 @@ def objects_export(out: Path = typer.Argument(..., help="folder for the BOP mode
 
 @objects_app.command("picture")
 def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
-                    tile: int = typer.Option(240, help="tile size in pixels")) -> None:
+                    tile: int = typer.Option(200, help="tile width in pixels")) -> None:
     """Render all 20 objects, glass and opaque twin, into one picture."""
     from tdof20.formats import write_png
     from tdof20.sim.gallery import catalog_picture

@@ -713,3 +713,13 @@ def test_models_info(tmp_path):
     with pytest.raises(TdofError, match="diameter"):
         write_models_info(tmp_path / "x", {1: {"size_x": 3.0}})
     assert not (tmp_path / "x" / "models_info.json").exists()
+
+
+def test_atomic_writes_get_ordinary_permissions(tmp_path):
+    import os
+    from tdof20.formats.io import write_json
+    p = tmp_path / "a.json"
+    write_json(p, {"a": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (p.stat().st_mode & 0o777) == (0o666 & ~mask)

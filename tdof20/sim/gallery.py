@@ -26,13 +26,14 @@ def _crop_square(img: np.ndarray, uv: np.ndarray, margin: float = 0.12) -> np.nd
 
 
 def catalog_picture(tile: int = 240) -> np.ndarray:
-    """All 20 objects, each as glass (on a checker sticker) and as its opaque twin."""
+    """All 20 objects, each as glass (on a checker sticker) and as its opaque twin; handles to
+    the right, spouts to the left."""
     layout = RigLayout()
-    cam = oakd_camera()
+    cam = oakd_camera(960, 720)
     T_cam = layout.camera_target(30.0)
     tiles, labels = [], []
     for obj in all_objects():
-        scene = SceneSpec(f"single/{obj.obj_id:02d}", (_place(obj.obj_id, (0.0, 0.0), np.radians(200)),),
+        scene = SceneSpec(f"single/{obj.obj_id:02d}", (_place(obj.obj_id, (0.0, 0.0), np.radians(90)),),
                           "checker", 11)
         r = SimRenderer(scene, cam, layout, [T_cam])
         pose = r.poses(0, 0.0)[0]
