@@ -164,8 +164,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          step_deg: float = typer.Option(45.0, help="turntable step in degrees"),
          arm_positions: int = typer.Option(4, help="number of arm positions"),
          width: int = WIDTH, height: int = HEIGHT, seed: int = SEED) -> None:
-    """Run the main job end to end on the simulator: capture a short simulated session and write
-    its contact sheet."""
+    """Run the main job end to end on the simulator: a short simulated session and its contact sheet."""
     from tdof20.demo import run_demo
 
     run_demo(out, scene=scene, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,

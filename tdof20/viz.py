@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
+
+from tdof20.errors import TdofError
 
 
 def depth_to_colour(depth_mm: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
@@ -87,7 +91,7 @@ def session_contact_sheet(session_dir, n_frames: int = 4, tile_width: int = 256)
     info = s.info
     keys = [k for k in s.frames("transparent")] or [k for k in s.frames()]
     if not keys:
-        raise ValueError(f"{session_dir}: the session has no frames yet")
+        raise TdofError("the session has no frames yet", Path(session_dir) / "journal.jsonl")
     pick = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, n_frames).round().astype(int))]
     truth = None
     if s.truth_dir is not None and (s.truth_dir / "scene_gt.json").exists():
