@@ -33,16 +33,16 @@ def main() -> None:
            "setup_s": round(setup, 3)}
     for phase in ("transparent", "opaque"):
         for arm in range(info.n_arms):  # warm the per-arm background caches, as a session does
-            r.render(arm, 0, 0.0, phase)
+            r.render(arm, 0.0, phase)
         frames = [(k % info.n_arms, k, k * cfg.step_deg) for k in range(a.frames)]
         t = time.perf_counter()
         glass_px = 0
         for arm, k, ang in frames:
-            glass_px += int((r.render(arm, k, ang, phase).label >= 0).sum())
+            glass_px += int((r.render(arm, ang, phase).label >= 0).sum())
         dt = time.perf_counter() - t
         out[f"{phase}_fps"] = round(a.frames / dt, 1)
         out[f"{phase}_object_px"] = glass_px // a.frames
-        rendered = [r.render(arm, k, ang, phase) for arm, k, ang in frames[:20]]
+        rendered = [r.render(arm, ang, phase) for arm, k, ang in frames[:20]]
         t = time.perf_counter()
         for f in rendered:
             r.full_masks(f.poses)

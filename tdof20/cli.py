@@ -16,11 +16,20 @@ from tdof20.progress import console
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Build and benchmark 6DoF pose datasets of transparent objects (TDoF20).")
 objects_app = typer.Typer(no_args_is_help=True, help="The 20-object catalog: list, export, picture.")
-sim_app = typer.Typer(no_args_is_help=True, help="The simulated rig: scenes, sessions, frames, contact sheets.")
+sim_app = typer.Typer(no_args_is_help=True, help="The simulated rig: scenes, frames, contact sheets.")
+capture_app = typer.Typer(no_args_is_help=True, help="Capture sessions on the rig or the simulator: plan, run, verify.")
+app.add_typer(capture_app, name="capture")
 app.add_typer(objects_app, name="objects")
 app.add_typer(sim_app, name="sim")
 
 out_console = console.__class__()  # stdout, for tables
+
+SCENE = typer.Option("multi/08", help="scene name: single/01..20 or multi/01..20")
+WIDTH = typer.Option(640, help="image width in pixels")
+HEIGHT = typer.Option(480, help="image height in pixels")
+SEED = typer.Option(0, help="noise seed (frames are deterministic for a seed)")
+
+
 
 
 def _ids(text: Optional[str]) -> Optional[list[int]]:
@@ -30,6 +39,100 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
         return [int(x) for x in text.replace(" ", "").split(",") if x]
     except ValueError:
         raise TdofError(f"--ids must be comma-separated integers, got '{text}'") from None
+
+
+# ----------------------------------------------------------------------------------- capture
+def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, step_deg: float, arm_positions: int,
+                    width: int, height: int, seed: int):
+    from tdof20.capture import load_config, sim_config
+
+    if config is not None and sim:
+        raise TdofError("give either a CONFIG file or --sim, not both")
+    if config is None and not sim:
+        raise TdofError("give a CONFIG file (see examples/real_rig.toml), or --sim for the simulated rig")
+    if config is not None:
+        return load_config(config)
+    return sim_config(scene, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
+                      seed=seed)
+
+
+CONFIG_ARG = typer.Argument(None, help="capture config (TOML); leave out with --sim")
+SIM = typer.Option(False, "--sim", help="use the simulated rig (no config needed)")
+STEPS = typer.Option(400, help="--sim: turntable steps per arm position")
+STEP_DEG = typer.Option(0.9, help="--sim: turntable step in degrees")
+ARMS = typer.Option(4, help="--sim: number of arm positions")
+
+
+@capture_app.command("plan")
+def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: str = SCENE, steps: int = STEPS,
+                 step_deg: float = STEP_DEG, arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT,
+                 seed: int = SEED, json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
+    """Print the sequence a session will run and its estimated duration; checks every arm target
+    against the workspace limits. Touches no hardware."""
+    import json
+
+    from tdof20.capture import describe
+
+    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed)
+    d = describe(cfg)
+    if json_out:
+        print(json.dumps(d, indent=2))
+    else:
+        est = d["estimate"]
+        out_console.print(f"scene {d['scene_id']}, phases {' then '.join(d['phases'])}, backends "
+                          + ", ".join(f"{k} {v}" for k, v in d["backends"].items()))
+        t = Table(title="arm positions (moveJ targets)")
+        for c in ("arm", "joints (deg)", "TCP xyz (mm)", "limits"):
+            t.add_column(c)
+        for a in d["arms"]:
+            t.add_row(str(a["arm"]), " ".join(f"{v:.1f}" for v in a["q_deg"]), " ".join(f"{v:.0f}" for v in a["tcp_mm"]),
+                      "[green]ok[/green]" if not a["problems"] else "[red]" + "; ".join(a["problems"]) + "[/red]")
+        out_console.print(t)
+        out_console.print(f"per phase and arm position: {d['steps']} steps of {d['step_deg']:g} deg; "
+                          f"{est['frames']} RGB-D pairs in all")
+        out_console.print(f"estimated duration on the hardware: {est['total_s'] / 60:.1f} min "
+                          f"({est['per_frame_s']:.2f} s a frame, {est['arm_moves_s']:.0f} s of arm moves; "
+                          f"the operator's swap between phases not counted)")
+    if not d["ok"]:
+        from tdof20.capture import check_workspace
+
+        check_workspace(cfg)  # raises the one-line refusal
+
+
+@capture_app.command("run")
+def capture_run(config: Optional[Path] = CONFIG_ARG,
+                out: Path = typer.Option(..., "--out", help="session folder (created; resumed if it holds this session)"),
+                sim: bool = SIM, scene: str = SCENE, steps: int = STEPS, step_deg: float = STEP_DEG,
+                arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
+                yes: bool = typer.Option(False, "--yes", help="do not wait for the operator (scripted runs)")) -> None:
+    """Run (or resume) a capture session and write the raw session format."""
+    import shlex
+
+    from tdof20.capture import run_capture
+
+    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed)
+    resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    summary = run_capture(cfg, out, yes=yes, resume_command=resume)
+    for line in summary.lines():
+        console.print(line)
+    console.print(f"session in {out} (log: {out / 'capture.log'})")
+
+
+@capture_app.command("verify")
+def capture_verify(session: Path = typer.Argument(..., help="raw session folder")) -> None:
+    """Check a session: every planned frame present, files decodable, checksums matching."""
+    from tdof20.capture import verify_session
+
+    problems = verify_session(session)
+    if problems:
+        for p in problems[:200]:
+            out_console.print(p, highlight=False, soft_wrap=True)
+        if len(problems) > 200:
+            out_console.print(f"... and {len(problems) - 200} more")
+        console.print(f"[bold red]{len(problems)} problems[/bold red] in {session}")
+        raise typer.Exit(1)
+    console.print(f"[green]ok[/green]: {session} is complete and every file matches its checksum")
+
 
 
 # ----------------------------------------------------------------------------------- objects
@@ -88,43 +191,6 @@ def sim_scenes() -> None:
     out_console.print(t)
 
 
-def _sim_config(scene: str, steps: int, step_deg: float, arm_positions: int, width: int, height: int,
-                seed: int):
-    from tdof20.sim.session import SimSessionConfig
-
-    return SimSessionConfig(scene_id=scene, steps=steps, step_deg=step_deg, n_arms=arm_positions,
-                            width=width, height=height, seed=seed).validate()
-
-
-SCENE = typer.Option("multi/08", help="scene name: single/01..20 or multi/01..20")
-WIDTH = typer.Option(640, help="image width in pixels")
-HEIGHT = typer.Option(480, help="image height in pixels")
-SEED = typer.Option(0, help="noise seed (frames are deterministic for a seed)")
-
-
-@sim_app.command("session")
-def sim_session(out: Path = typer.Option(..., "--out", help="session folder (created; resumed if partial)"),
-                scene: str = SCENE,
-                steps: int = typer.Option(400, help="turntable steps per arm position"),
-                step_deg: float = typer.Option(0.9, help="turntable step in degrees"),
-                arm_positions: int = typer.Option(4, help="number of arm positions (elevations)"),
-                width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
-                truth: bool = typer.Option(True, help="write truth/ (exact ground truth as a BOP scene)"),
-                sheet: bool = typer.Option(True, help="write contact_sheet.png into the session")) -> None:
-    """Render a whole simulated capture session in the raw session format (with truth/)."""
-    from tdof20.formats import write_png
-    from tdof20.sim.session import simulate_session
-    from tdof20.viz import session_contact_sheet
-
-    cfg = _sim_config(scene, steps, step_deg, arm_positions, width, height, seed)
-    t0 = time.perf_counter()
-    simulate_session(cfg, out, truth=truth)
-    dt = time.perf_counter() - t0
-    if sheet:
-        write_png(out / "contact_sheet.png", session_contact_sheet(out))
-    console.print(f"session {scene} in {out} ({dt:.1f} s)" + (f"; contact sheet {out / 'contact_sheet.png'}" if sheet else ""))
-
-
 @sim_app.command("frames")
 def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs (created)"),
                scene: str = SCENE,
@@ -138,8 +204,11 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
         angle_list = [float(a) for a in angles.split(",") if a.strip()]
     except ValueError:
         raise TdofError(f"--angles must be comma-separated numbers, got '{angles}'") from None
-    cfg = _sim_config(scene, 400, 0.9, 4, width, height, seed)
-    sheet = render_frames(cfg, out, arm, angle_list)
+    from tdof20.capture import sim_config
+    from tdof20.capture.rig import build_rig
+
+    renderer = build_rig(sim_config(scene, width=width, height=height, seed=seed)).world.renderer
+    sheet = render_frames(renderer, out, arm, angle_list)
     console.print(f"wrote frames and {sheet}")
 
 

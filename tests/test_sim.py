@@ -9,7 +9,12 @@ from tdof20.geometry import invert, rotation_angle, transform_points
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout, ur5_fk, ur5_ik
 from tdof20.sim.scenes import get_scene, scene_ids
-from tdof20.sim.session import SimSessionConfig, build_session_info, make_renderer, simulate_session
+from tdof20.capture import run_capture, sim_config
+from tdof20.capture.rig import build_rig
+
+
+def renderer_of(cfg):
+    return build_rig(cfg).world.renderer
 
 
 # ------------------------------------------------------------------------------- kinematics
@@ -71,19 +76,18 @@ def test_scene_contents_and_no_interpenetration():
 
 # ------------------------------------------------------------------------------- renderer
 def test_same_seed_same_frames_and_other_seed_differs(small_cfg):
-    info = build_session_info(small_cfg)
-    r1, r2 = make_renderer(small_cfg, info), make_renderer(small_cfg, info)
+    r1, r2 = renderer_of(small_cfg), renderer_of(small_cfg)
     for phase in ("transparent", "opaque"):
-        a, b = r1.render(1, 2, 60.0, phase), r2.render(1, 2, 60.0, phase)
+        a, b = r1.render(1, 60.0, phase), r2.render(1, 60.0, phase)
         assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
-    other = SimSessionConfig(**{**small_cfg.__dict__, "seed": 5})
-    c = make_renderer(other, build_session_info(other)).render(1, 2, 60.0, "opaque")
+    other = sim_config("multi/08", steps=3, step_deg=30.0, n_arms=2, width=160, height=120, seed=5)
+    c = renderer_of(other).render(1, 60.0, "opaque")
     assert not np.array_equal(c.depth, a.depth)
 
 
 def test_opaque_depth_matches_truth_within_noise_model(renderer_640):
     r = renderer_640
-    f = r.render(1, 7, 6.3, "opaque")
+    f = r.render(1, 6.3, "opaque")
     z = r.camera.depth_to_mm(f.depth)
     valid = z > 0
     on_obj = f.label >= 0
@@ -103,7 +107,7 @@ def test_opaque_depth_matches_truth_within_noise_model(renderer_640):
 
 def test_transparent_depth_is_mostly_invalid_on_glass(renderer_640):
     r = renderer_640
-    f = r.render(2, 11, 9.9, "transparent")
+    f = r.render(2, 9.9, "transparent")
     z = r.camera.depth_to_mm(f.depth)
     on_obj = f.label >= 0
     assert on_obj.sum() > 2000
@@ -112,15 +116,15 @@ def test_transparent_depth_is_mostly_invalid_on_glass(renderer_640):
     assert (surface_ok & on_obj).sum() / on_obj.sum() < 0.25
     assert (z[on_obj] == 0).mean() > 0.5
     # away from the objects the transparent phase behaves like the opaque one
-    o = r.render(2, 11, 9.9, "opaque")
+    o = r.render(2, 9.9, "opaque")
     far = (f.label < 0) & (o.label < 0)
     assert (f.depth[far] > 0).mean() > 0.9
 
 
 def test_transparent_rgb_shows_the_background_through_the_glass(renderer_640):
     r = renderer_640
-    t = r.render(0, 3, 2.7, "transparent")
-    o = r.render(0, 3, 2.7, "opaque")
+    t = r.render(0, 2.7, "transparent")
+    o = r.render(0, 2.7, "opaque")
     on = t.label >= 0
     # the glass is not a flat colour: it carries the texture behind it
     assert t.rgb[on].std(axis=0).mean() > 10
@@ -132,7 +136,7 @@ def test_transparent_rgb_shows_the_background_through_the_glass(renderer_640):
 
 def test_masks_agree_with_the_geometry(renderer_640):
     r = renderer_640
-    f = r.render(1, 0, 123.0, "transparent")
+    f = r.render(1, 123.0, "transparent")
     full = r.full_masks(f.poses)
     for i, (pl, T) in enumerate(zip(r.scene.placements, f.poses)):
         visib = f.label == i
@@ -147,14 +151,15 @@ def test_masks_agree_with_the_geometry(renderer_640):
 
 # ------------------------------------------------------------------------------- session
 def test_session_is_complete_and_consistent(small_session, small_cfg):
+    steps, step_deg, n_arms = small_cfg.turntable.steps, small_cfg.turntable.step_deg, small_cfg.sim.n_arms
     s = RawSession.open(small_session)
     assert s.info.scene_id == "multi/08"
     assert s.missing_frames() == []
-    assert len(s.entries) == 2 * small_cfg.n_arms * small_cfg.steps
+    assert len(s.entries) == 2 * n_arms * steps
     for e in s.entries:
         assert s.verify_file(e) == []
     truth = read_scene(small_session / "truth")
-    assert sorted(truth.im_ids()) == list(range(small_cfg.n_arms * small_cfg.steps))
+    assert sorted(truth.im_ids()) == list(range(n_arms * steps))
     # the truth motion between consecutive steps is a rotation by step_deg about the table axis
     info = read_session(small_session)
     for arm in range(info.n_arms):
@@ -162,10 +167,18 @@ def test_session_is_complete_and_consistent(small_session, small_cfg):
         b = truth.gt[arm * info.steps + 1][0]
         Ra = np.asarray(a["cam_R_m2c"]).reshape(3, 3)
         Rb = np.asarray(b["cam_R_m2c"]).reshape(3, 3)
-        assert np.degrees(rotation_angle(Ra, Rb)) == pytest.approx(small_cfg.step_deg, abs=1e-6)
-    # truth visible masks are the ray-cast labels: recompute one frame
-    r = make_renderer(small_cfg, info)
-    f = r.render(1, 2, 2 * small_cfg.step_deg, "transparent")
+        assert np.degrees(rotation_angle(Ra, Rb)) == pytest.approx(step_deg, abs=1e-6)
+    # session.json's arm positions and hand-eye give the truth's camera: the table centre seen
+    # from T_base_cam equals the truth's world (table) origin in the camera
+    from tdof20.sim.rig import RigLayout
+    for arm in range(info.n_arms):
+        cam = truth.camera[arm * info.steps]
+        t_w2c = np.asarray(cam["cam_t_w2c"])
+        expect = transform_points(invert(info.T_base_cam(arm)), np.asarray(RigLayout().table_centre))
+        assert np.allclose(t_w2c, expect, atol=1e-6)
+    # truth visible masks are the ray-cast labels, and the stored frame is the rendered one
+    r = renderer_of(small_cfg)
+    f = r.render(1, 2 * step_deg, "transparent")
     im_id = 1 * info.steps + 2
     for g in range(len(f.poses)):
         assert np.array_equal(truth.mask(im_id, g, visib=True), f.label == g)
@@ -178,38 +191,12 @@ def test_multi_object_scene_has_occlusion(small_session):
     assert min(fracs) < 0.9
 
 
-def test_resume_rerenders_missing_frames_identically(tmp_path, small_cfg, small_session):
-    out = tmp_path / "s"
-    cfg = SimSessionConfig(**{**small_cfg.__dict__, "steps": 2, "n_arms": 1})
-    simulate_session(cfg, out, show_progress=False)
-    before = {p.relative_to(out): sha256_file(p) for p in out.rglob("*.png")}
-    # drop the last journal line and its files, as a crash mid-frame would
-    lines = (out / "journal.jsonl").read_text().splitlines()
-    (out / "journal.jsonl").write_text("\n".join(lines[:-1]) + "\n")
-    (out / "opaque/arm0/rgb/000001.png").unlink()
-    simulate_session(cfg, out, show_progress=False)
-    after = {p.relative_to(out): sha256_file(p) for p in out.rglob("*.png")}
-    assert before == after
-    assert len(RawSession.open(out).entries) == 4
-
-
-def test_session_refuses_a_folder_of_another_session(tmp_path, small_cfg):
-    out = tmp_path / "s"
-    cfg = SimSessionConfig(**{**small_cfg.__dict__, "steps": 1, "n_arms": 1})
-    simulate_session(cfg, out, show_progress=False, truth=False)
-    before = (out / "session.json").read_bytes()
-    other = SimSessionConfig(**{**cfg.__dict__, "scene_id": "single/03"})
-    with pytest.raises(TdofError, match="different session"):
-        simulate_session(other, out, show_progress=False)
-    assert (out / "session.json").read_bytes() == before
-
-
 def test_incremental_stereo_holes_equal_the_full_computation(renderer_640):
     from tdof20.sim.sensor import stereo_holes
 
     r = renderer_640
     for k, arm in enumerate((0, 3, 1)):
-        f = r.render(arm, k, 57.0 * k, "opaque")
+        f = r.render(arm, 57.0 * k, "opaque")
         _, box = r._roi(f.poses)
         inc = r._holes(f.depth_true, r._background(arm), box)
         full = stereo_holes(f.depth_true, r.camera.fx, r.sensor)

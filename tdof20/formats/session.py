@@ -704,9 +704,10 @@ class RawSession:
         return self.info.camera.depth_to_mm(self.load_depth(phase, arm, step, verify))
 
     # --- checking --------------------------------------------------------------------------------
-    def verify_file(self, entry: JournalEntry) -> list[str]:
-        """Problems with a frame's files: missing, checksum mismatch, undecodable, wrong size.
-        Each problem is one line naming the file; [] when all is well."""
+    def verify_file(self, entry: JournalEntry, decode: bool = True) -> list[str]:
+        """Problems with a frame's files: missing, checksum mismatch, undecodable, wrong size
+        (the last two only with ``decode``; a matching checksum already proves the bytes are the
+        ones written). Each problem is one line naming the file; [] when all is well."""
         problems = []
         cam = self.info.camera
         for kind in ("rgb", "depth"):
@@ -721,6 +722,8 @@ class RawSession:
                 continue
             if sha256_bytes(data) != entry.sha256.get(kind):
                 problems.append(f"{p}: checksum mismatch (the file differs from what the journal recorded)")
+            if not decode:
+                continue
             try:
                 img = decode_png(data, p, kind)
             except TdofError as ex:

@@ -39,30 +39,28 @@ def catalog_picture(tile: int = 240) -> np.ndarray:
         pose = r.poses(0, 0.0)[0]
         uv, _ = cam.project(transform_points(pose, obj.vertices))
         for phase in ("transparent", "opaque"):
-            f = r.render(0, 0, 0.0, phase)
+            f = r.render(0, 0.0, phase)
             tiles.append(_crop_square(f.rgb, uv))
             labels.append(f"{obj.obj_id} {obj.name}" if phase == "transparent" else "opaque twin")
     return contact_sheet(tiles, labels, cols=8, tile_width=tile)
 
 
-def render_frames(cfg, out_dir: str | Path, arm: int, angles: list[float]) -> Path:
+def render_frames(renderer: SimRenderer, out_dir: str | Path, arm: int, angles: list[float]) -> Path:
     """Render both phases at the given table angles into ``out_dir`` (PNGs + contact_sheet.png)."""
     from tdof20.errors import TdofError
-    from tdof20.sim.session import build_session_info, make_renderer
 
-    info = build_session_info(cfg)
-    if not 0 <= arm < info.n_arms:
-        raise TdofError(f"--arm must be in 0..{info.n_arms - 1}, got {arm}")
-    r = make_renderer(cfg, info)
+    r = renderer
+    if not 0 <= arm < len(r.T_base_cams):
+        raise TdofError(f"--arm must be in 0..{len(r.T_base_cams) - 1}, got {arm}")
     out = Path(out_dir)
     tiles, labels = [], []
     for a in angles:
         for phase in ("transparent", "opaque"):
-            f = r.render(arm, int(round(a * 1000)), a, phase)
+            f = r.render(arm, a, phase)
             stem = f"arm{arm}_{a:07.2f}deg_{phase}"
             write_png(out / f"{stem}_rgb.png", f.rgb)
             write_png(out / f"{stem}_depth.png", f.depth)
-            z = info.camera.depth_to_mm(f.depth)
+            z = r.camera.depth_to_mm(f.depth)
             tiles += [f.rgb, depth_to_colour(z, 250, 1500)]
             labels += [f"{phase} {a:g} deg", f"{phase} depth"]
         masks = [f.label == i for i in range(len(f.poses))]

@@ -261,42 +261,64 @@ class SimRenderer:
         return roi.astype(bool), box
 
     # ------------------------------------------------------------------ rendering
-    def frame_rng(self, phase: str, arm: int, step: int) -> np.random.Generator:
-        return np.random.default_rng([self.seed, PHASES.index(phase), arm, step])
+    def frame_rng(self, phase: str, arm: int, angle_deg: float) -> np.random.Generator:
+        """The noise of a frame depends on the seed, the phase, the arm position and the table
+        angle (in millidegrees) only: any order of rendering, or a resumed capture, gives the
+        same frames."""
+        return np.random.default_rng([self.seed, PHASES.index(phase), arm, int(round(angle_deg * 1000)) % 360000])
 
-    def render(self, arm: int, step: int, angle_deg: float, phase: str) -> Frame:
-        """Render the RGB-D pair of ``phase`` at arm position ``arm``, table step ``step`` (seeds the
-        noise) and table angle ``angle_deg``. Deterministic for (seed, phase, arm, step)."""
+    def _geometry(self, arm: int, angle_deg: float) -> dict:
+        """The exact geometry of a view: object poses, which object each pixel sees (label) and
+        its depth, from one cast of the pixels that can meet an object."""
+        h, w = self.camera.height, self.camera.width
+        bg = self._background(arm)
+        poses = self.poses(arm, angle_deg)
+        T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ self.T_base_cams[arm]
+        roi2d, box = self._roi(poses)
+        idx = np.flatnonzero(roi2d)
+        hit = self._cast(self._objects, T_table_cam[:3, 3],
+                         self._rays_cam[idx] @ T_table_cam[:3, :3].T.astype(np.float32))
+        z_obj_roi = hit["t_hit"].astype(np.float32)
+        z_bg = bg["z"].reshape(-1)
+        vis_roi = np.isfinite(z_obj_roi) & (z_obj_roi < z_bg[idx])
+        vi = idx[vis_roi]  # flat indices of the pixels that see an object
+        label = np.full(h * w, -1, np.int16)
+        label[vi] = hit["geometry_ids"][vis_roi].astype(np.int16)
+        z_obj = np.full(h * w, np.inf, np.float32)
+        z_obj[vi] = z_obj_roi[vis_roi]
+        return {"bg": bg, "poses": poses, "T_table_cam": T_table_cam, "roi": roi2d, "box": box, "vi": vi,
+                "gid": hit["geometry_ids"][vis_roi], "prim": hit["primitive_ids"][vis_roi],
+                "uv": hit["primitive_uvs"][vis_roi], "label": label, "z_obj": z_obj}
+
+    def truth(self, arm: int, angle_deg: float) -> Frame:
+        """Ground truth of a view without rendering colour or noise: poses, visible labels and the
+        noise-free depth (``rgb`` and ``depth`` are None)."""
+        g = self._geometry(arm, angle_deg)
+        h, w = self.camera.height, self.camera.width
+        z_true = np.minimum(g["z_obj"], g["bg"]["z"].reshape(-1)).reshape(h, w)
+        return Frame(None, None, g["label"].reshape(h, w), g["poses"], depth_true=z_true)
+
+    def render(self, arm: int, angle_deg: float, phase: str) -> Frame:
+        """Render the RGB-D pair of ``phase`` at arm position ``arm`` and table angle ``angle_deg``.
+        Deterministic for (seed, phase, arm, angle)."""
         if phase not in PHASES:
             raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
         cam = self.camera
         h, w = cam.height, cam.width
-        rng = self.frame_rng(phase, arm, step)
-        bg = self._background(arm)
-        poses = self.poses(arm, angle_deg)
-        T_base_cam = self.T_base_cams[arm]
-        T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ T_base_cam
-        R_cam_table = T_table_cam[:3, :3].T
-
-        roi2d, box = self._roi(poses)
-        idx = np.flatnonzero(roi2d)
-        rays_cam = self._rays_cam[idx]
-        hit = self._cast(self._objects, T_table_cam[:3, 3], rays_cam @ T_table_cam[:3, :3].T.astype(np.float32))
-        z_obj_roi = hit["t_hit"].astype(np.float32)
+        rng = self.frame_rng(phase, arm, angle_deg)
+        geo = self._geometry(arm, angle_deg)
+        bg, poses, roi2d, box = geo["bg"], geo["poses"], geo["roi"], geo["box"]
+        label, z_obj, vi = geo["label"], geo["z_obj"], geo["vi"]
         z_bg = bg["z"].reshape(-1)
-        vis_roi = np.isfinite(z_obj_roi) & (z_obj_roi < z_bg[idx])
-        label = np.full(h * w, -1, np.int16)
-        label[idx[vis_roi]] = hit["geometry_ids"][vis_roi].astype(np.int16)
-        z_obj = np.full(h * w, np.inf, np.float32)
-        z_obj[idx[vis_roi]] = z_obj_roi[vis_roi]
+        T_base_cam = self.T_base_cams[arm]
+        R_cam_table = geo["T_table_cam"][:3, :3].T
 
         # background colour: static room + the sticker at this table angle
         colour = self._draw_sticker(bg["colour"].copy(), bg["sticker_maps"], angle_deg).reshape(-1, 3)
 
-        vi = idx[vis_roi]  # flat pixel indices of visible object pixels
         if len(vi):
-            gid = hit["geometry_ids"][vis_roi]
-            n_table = self._interp_normals(gid, hit["primitive_ids"][vis_roi], hit["primitive_uvs"][vis_roi])
+            gid = geo["gid"]
+            n_table = self._interp_normals(gid, geo["prim"], geo["uv"])
             n_cam = (n_table @ R_cam_table.T.astype(np.float32))
             d_cam = self._dirs_cam[vi]
             n_cam *= np.where(np.einsum("ij,ij->i", n_cam, d_cam) > 0, -1.0, 1.0).astype(np.float32)[:, None]

@@ -1,0 +1,275 @@
+"""The capture session config: typed, loaded from TOML, every option with a default that works on
+the simulator. Any mistake is one line naming the file and the option (before anything moves).
+
+    [session]    scene_id, objects, phases, retries
+    [hand_eye]   T_tcp_cam
+    [robot]      backend ("sim" | "ur_rtde"), host, speed, acceleration, timeouts, positions
+    [robot.limits] joint_min, joint_max, tcp_min, tcp_max
+    [turntable]  backend ("sim" | "grbl"), port, baudrate, axis, units_per_degree, feed, step_deg, steps, settle_s, ...
+    [camera]     backend ("sim" | "oakd"), width, height, fps, device_id, timeout_s
+    [sim]        seed
+
+See docs/capture.md for every option and ``examples/real_rig.toml`` for the real rig.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tdof20.errors import TdofError
+
+TWO_PI = 2 * math.pi
+PHASES = ("transparent", "opaque")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Workspace limits every arm target is checked against before anything moves."""
+
+    joint_min: tuple[float, ...] = (-TWO_PI,) * 6      # rad
+    joint_max: tuple[float, ...] = (TWO_PI,) * 6       # rad
+    tcp_min: tuple[float, ...] = (-850.0, -850.0, -150.0)  # mm, base frame box for the TCP
+    tcp_max: tuple[float, ...] = (850.0, 850.0, 900.0)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    backend: str = "sim"                  # "sim" | "ur_rtde"
+    host: str = "192.168.1.10"
+    speed: float = 0.5                    # moveJ joint speed, rad/s
+    acceleration: float = 0.5             # moveJ joint acceleration, rad/s^2
+    connect_timeout_s: float = 5.0
+    move_timeout_s: float = 60.0
+    joint_tolerance_rad: float = 0.002    # arrival check after each move
+    positions: tuple[tuple[float, ...], ...] = ()  # arm positions as joint vectors (rad); sim: computed if empty
+    limits: Limits = field(default_factory=Limits)
+
+
+@dataclass(frozen=True)
+class TurntableConfig:
+    backend: str = "sim"                  # "sim" | "grbl"
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = 115200
+    axis: str = "X"
+    units_per_degree: float = 1.0         # GRBL axis units per table degree
+    feed_deg_per_s: float = 30.0
+    step_deg: float = 0.9
+    steps: int = 400
+    settle_s: float = 0.0                 # wait after the table stopped, before grabbing
+    timeout_s: float = 30.0
+    home: bool = True                     # home the table before the first frame
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    backend: str = "sim"                  # "sim" | "oakd"
+    width: int = 640
+    height: int = 480
+    fps: float = 10.0
+    device_id: str = ""
+    timeout_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    scene_id: str = "multi/08"
+    objects: tuple[int, ...] = ()         # object ids on the table; sim: the scene's own if empty
+    phases: tuple[str, ...] = PHASES
+    retries: int = 2                      # retries of a failed device call before the run stops
+
+
+@dataclass(frozen=True)
+class HandEyeConfig:
+    T_tcp_cam: tuple[float, ...] = ()     # 16 numbers, row-major, mm; sim: the simulated bracket if empty
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    seed: int = 0
+    n_arms: int = 4                       # arm positions computed for the sim when robot.positions is empty
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    session: SessionConfig = field(default_factory=SessionConfig)
+    hand_eye: HandEyeConfig = field(default_factory=HandEyeConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    turntable: TurntableConfig = field(default_factory=TurntableConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    source: str = ""                      # the file it was read from ("" = built in code)
+
+    @property
+    def is_sim(self) -> bool:
+        return "sim" in (self.robot.backend, self.turntable.backend, self.camera.backend)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("source")
+        return d
+
+
+BACKENDS = {"robot": ("sim", "ur_rtde"), "turntable": ("sim", "grbl"), "camera": ("sim", "oakd")}
+
+
+# ------------------------------------------------------------------------------------ loading
+def _fail(src: str, where: str, msg: str):
+    raise TdofError(f"{where}: {msg}" if where else msg, src or None)
+
+
+def _convert(value: Any, tp: Any, src: str, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            _fail(src, where, f"must be a table, got {type(value).__name__}")
+        return _build(tp, value, src, where)
+    if tp is bool:
+        if not isinstance(value, bool):
+            _fail(src, where, f"must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            _fail(src, where, f"must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            _fail(src, where, f"must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            _fail(src, where, f"must be a string, got {value!r}")
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            _fail(src, where, f"must be a list, got {value!r}")
+        inner = args[0]
+        return tuple(_convert(v, inner, src, f"{where}[{i}]") for i, v in enumerate(value))
+    raise TypeError(f"unsupported config type {tp}")  # pragma: no cover - programming error
+
+
+def _build(cls, data: dict, src: str, where: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.name != "source"}
+    for key in data:
+        if key not in names:
+            path = f"{where}.{key}" if where else key
+            _fail(src, "", f"unknown option '{path}' (known: {', '.join(sorted(names))})")
+    kwargs = {k: _convert(v, hints[k], src, f"{where}.{k}" if where else k) for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict, source: str = "") -> CaptureConfig:
+    cfg = _build(CaptureConfig, data, source, "")
+    cfg = dataclasses.replace(cfg, source=source)
+    validate(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> CaptureConfig:
+    """Read and check a TOML capture config; any problem is a one-line TdofError naming the file."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise TdofError("config file not found", path) from None
+    except tomllib.TOMLDecodeError as e:
+        raise TdofError(f"malformed TOML: {e}", path) from None
+    except (UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    return config_from_dict(data, str(path))
+
+
+# ------------------------------------------------------------------------------------ checks
+def validate(cfg: CaptureConfig) -> CaptureConfig:
+    """Everything that can be checked without hardware (workspace limits: see plan.check_workspace)."""
+    src = cfg.source
+    from tdof20.sim.scenes import SCENE_RE
+
+    s = cfg.session
+    m = SCENE_RE.match(s.scene_id)
+    if not m or not 1 <= int(m.group(2)) <= 20:
+        _fail(src, "session.scene_id", f"'{s.scene_id}' is not a scene name (single/01..20 or multi/01..20)")
+    if not s.phases or any(p not in PHASES for p in s.phases) or len(set(s.phases)) != len(s.phases):
+        _fail(src, "session.phases", f"must be distinct phases from {list(PHASES)}, got {list(s.phases)}")
+    for i, o in enumerate(s.objects):
+        if not 1 <= o <= 20:
+            _fail(src, f"session.objects[{i}]", f"unknown object id {o} (valid: 1-20)")
+    if s.retries < 0:
+        _fail(src, "session.retries", "must be >= 0")
+    for name, allowed in BACKENDS.items():
+        b = getattr(cfg, name).backend
+        if b not in allowed:
+            _fail(src, f"{name}.backend", f"unknown backend '{b}' (valid: {', '.join(allowed)})")
+    backends = {cfg.robot.backend, cfg.turntable.backend, cfg.camera.backend}
+    if cfg.is_sim and backends != {"sim"}:
+        _fail(src, "", "robot, turntable and camera must all be 'sim' or all be hardware (mixing is not supported)")
+    if not cfg.is_sim and not s.objects:
+        _fail(src, "session.objects", "list the object ids on the table (a real rig cannot guess them)")
+    r = cfg.robot
+    for k in ("speed", "acceleration", "connect_timeout_s", "move_timeout_s", "joint_tolerance_rad"):
+        if not getattr(r, k) > 0:
+            _fail(src, f"robot.{k}", f"must be > 0, got {getattr(r, k)}")
+    if r.speed > 3.2:
+        _fail(src, "robot.speed", f"{r.speed} rad/s exceeds the UR5's joint speed limit (3.14 rad/s); degrees?")
+    if not r.positions and r.backend != "sim":
+        _fail(src, "robot.positions", "list the arm positions as joint vectors (rad)")
+    for i, q in enumerate(r.positions):
+        if len(q) != 6:
+            _fail(src, f"robot.positions[{i}]", f"must be 6 joint angles (rad), got {len(q)}")
+        if max(abs(v) for v in q) > TWO_PI:
+            _fail(src, f"robot.positions[{i}]", "has a joint beyond 2*pi: looks like degrees, radians expected")
+    L = r.limits
+    for k, n in (("joint_min", 6), ("joint_max", 6), ("tcp_min", 3), ("tcp_max", 3)):
+        if len(getattr(L, k)) != n:
+            _fail(src, f"robot.limits.{k}", f"must be {n} numbers, got {len(getattr(L, k))}")
+    if any(a >= b for a, b in zip(L.joint_min, L.joint_max)) or any(a >= b for a, b in zip(L.tcp_min, L.tcp_max)):
+        _fail(src, "robot.limits", "every minimum must be below its maximum")
+    t = cfg.turntable
+    if not 0 < t.step_deg <= 360:
+        _fail(src, "turntable.step_deg", f"must be in (0, 360], got {t.step_deg}")
+    if t.steps < 1:
+        _fail(src, "turntable.steps", f"must be >= 1, got {t.steps}")
+    for k in ("units_per_degree", "feed_deg_per_s", "timeout_s", "baudrate"):
+        if not getattr(t, k) > 0:
+            _fail(src, f"turntable.{k}", f"must be > 0, got {getattr(t, k)}")
+    if t.settle_s < 0:
+        _fail(src, "turntable.settle_s", "must be >= 0")
+    c = cfg.camera
+    if not (16 <= c.width <= 4096 and 16 <= c.height <= 4096):
+        _fail(src, "camera.width/height", f"{c.width}x{c.height} out of range (16..4096)")
+    if not c.fps > 0 or not c.timeout_s > 0:
+        _fail(src, "camera", "fps and timeout_s must be > 0")
+    he = cfg.hand_eye.T_tcp_cam
+    if he:
+        if len(he) != 16:
+            _fail(src, "hand_eye.T_tcp_cam", f"must be 16 numbers (row-major 4x4), got {len(he)}")
+        T = np.asarray(he, float).reshape(4, 4)
+        R = T[:3, :3]
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0 and np.allclose(T[3], [0, 0, 0, 1])):
+            _fail(src, "hand_eye.T_tcp_cam", "is not a rigid transform (rotation must be orthonormal, last row 0 0 0 1)")
+        if 0 < np.linalg.norm(T[:3, 3]) < 1.0:
+            _fail(src, "hand_eye.T_tcp_cam", "translation looks like metres; millimetres expected")
+    elif not cfg.is_sim:
+        _fail(src, "hand_eye.T_tcp_cam", "give the hand-eye calibration (16 numbers, mm)")
+    if cfg.sim.n_arms < 1 or cfg.sim.n_arms > 8:
+        _fail(src, "sim.n_arms", "must be in 1..8")
+    return cfg
+
+
+def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0.9, n_arms: int = 4,
+               width: int = 640, height: int = 480, seed: int = 0, phases=PHASES) -> CaptureConfig:
+    """The config of a capture on the simulated rig (what ``capture run --sim`` builds)."""
+    cfg = CaptureConfig(session=SessionConfig(scene_id=scene_id, phases=tuple(phases)),
+                        turntable=TurntableConfig(step_deg=step_deg, steps=steps),
+                        camera=CameraConfig(width=width, height=height),
+                        sim=SimConfig(seed=seed, n_arms=n_arms))
+    return validate(cfg)

@@ -1,0 +1,66 @@
+"""Assemble the devices a capture config names (one module per vendor, imported only when used)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from tdof20.capture.config import CaptureConfig
+from tdof20.capture.hardware.interfaces import RGBDCamera, Robot, Turntable
+from tdof20.capture.plan import arm_targets, hand_eye
+
+
+@dataclass
+class Rig:
+    robot: Robot
+    turntable: Turntable
+    camera: RGBDCamera
+    set_phase: Callable[[str], None] | None = None          # the simulator swaps objects itself
+    after_capture: Callable[[Path, bool], None] | None = None  # the simulator writes its truth/ (out, progress)
+    world: object = field(default=None, repr=False)
+
+    def devices(self) -> list:
+        return [self.robot, self.turntable, self.camera]
+
+
+def build_rig(cfg: CaptureConfig, faults: dict | None = None) -> Rig:
+    if cfg.is_sim:
+        return _sim_rig(cfg, faults)
+    from tdof20.capture.hardware.grbl import GrblTurntable
+    from tdof20.capture.hardware.oakd import OakDCamera
+    from tdof20.capture.hardware.ur import URRobot
+
+    r, t, c = cfg.robot, cfg.turntable, cfg.camera
+    robot = URRobot(r.host, connect_timeout_s=r.connect_timeout_s)
+    table = GrblTurntable(t.port, baudrate=t.baudrate, axis=t.axis, units_per_degree=t.units_per_degree,
+                          feed_deg_per_s=t.feed_deg_per_s, timeout_s=t.timeout_s, home=t.home)
+    camera = OakDCamera(width=c.width, height=c.height, fps=c.fps, device_id=c.device_id or None)
+    return Rig(robot, table, camera)
+
+
+def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
+    from tdof20.capture.hardware.sim import SimCamera, SimRobot, SimTurntable, SimWorld
+    from tdof20.sim.render import SimRenderer
+    from tdof20.sim.rig import RigLayout, oakd_camera, ur5_fk
+    from tdof20.sim.scenes import get_scene
+
+    T_tcp_cam = hand_eye(cfg)
+    layout = RigLayout(T_tcp_cam=T_tcp_cam)
+    targets = arm_targets(cfg)
+    camera = oakd_camera(cfg.camera.width, cfg.camera.height)
+    renderer = SimRenderer(get_scene(cfg.session.scene_id, layout.table_radius), camera, layout,
+                           [ur5_fk(q) @ T_tcp_cam for q in targets], seed=cfg.sim.seed)
+    world = SimWorld(renderer, targets, faults)
+
+    def set_phase(phase: str) -> None:
+        world.phase = phase
+
+    def after_capture(out: Path, show_progress: bool = True) -> None:
+        from tdof20.sim.truth import write_truth
+
+        write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress)
+
+    return Rig(SimRobot(world), SimTurntable(world), SimCamera(world), set_phase, after_capture, world)
