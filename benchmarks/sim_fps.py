@@ -13,7 +13,8 @@ import json
 import time
 
 from tdof20.formats.io import encode_png
-from tdof20.sim.session import SimSessionConfig, build_session_info, make_renderer
+from tdof20.capture import sim_config
+from tdof20.capture.rig import build_rig
 
 
 def main() -> None:
@@ -24,17 +25,16 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     a = ap.parse_args()
-    cfg = SimSessionConfig(scene_id=a.scene, width=a.width, height=a.height)
-    info = build_session_info(cfg)
+    cfg = sim_config(a.scene, width=a.width, height=a.height)
     t = time.perf_counter()
-    r = make_renderer(cfg, info)
+    r = build_rig(cfg).world.renderer
     setup = time.perf_counter() - t
     out = {"scene": a.scene, "objects": len(r.scene.placements), "size": f"{a.width}x{a.height}",
            "setup_s": round(setup, 3)}
     for phase in ("transparent", "opaque"):
-        for arm in range(info.n_arms):  # warm the per-arm background caches, as a session does
+        for arm in range(len(r.T_base_cams)):  # warm the per-arm background caches, as a session does
             r.render(arm, 0.0, phase)
-        frames = [(k % info.n_arms, k, k * cfg.step_deg) for k in range(a.frames)]
+        frames = [(k % len(r.T_base_cams), k, k * cfg.turntable.step_deg) for k in range(a.frames)]
         t = time.perf_counter()
         glass_px = 0
         for arm, k, ang in frames:

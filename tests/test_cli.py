@@ -31,11 +31,9 @@ def one_line_error(res, *needles):
 def test_help_lists_only_built_commands():
     res = run("--help")
     assert res.returncode == 0
-    for cmd in ("objects", "sim", "demo"):
-        assert cmd in res.stdout
     import re
     commands = set(re.findall(r"^│ (\w+) ", res.stdout, flags=re.M))
-    assert commands == {"demo", "objects", "sim"}
+    assert commands == {"demo", "capture", "objects", "sim"}
 
 
 def test_objects_list_and_export(tmp_path):
@@ -52,15 +50,17 @@ def test_bad_ids_and_scenes_are_one_line_errors(tmp_path):
     one_line_error(run("objects", "export", tmp_path / "m", "--ids", "3,25"), "25")
     assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
     one_line_error(run("objects", "export", tmp_path / "m", "--ids", "x"), "--ids")
-    one_line_error(run("sim", "session", "--scene", "multi/21", "--out", tmp_path / "s"), "multi/21")
-    one_line_error(run("sim", "session", "--steps", "0", "--out", tmp_path / "s"), "--steps")
+    one_line_error(run("capture", "run", "--sim", "--scene", "multi/21", "--out", tmp_path / "s"), "multi/21")
+    one_line_error(run("capture", "run", "--sim", "--steps", "0", "--out", tmp_path / "s"), "turntable.steps")
 
 
 @pytest.fixture(scope="module")
 def cli_session(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "s"
-    res = run("sim", "session", "--scene", "single/05", "--steps", "2", "--step-deg", "90", "--arm-positions", "1",
-              "--width", "96", "--height", "72", "--out", out)
+    res = run("capture", "run", "--sim", "--scene", "single/05", "--steps", "2", "--step-deg", "90",
+              "--arm-positions", "1", "--width", "96", "--height", "72", "--out", out, "--yes")
+    assert res.returncode == 0, res.stderr
+    res = run("sim", "sheet", out)
     assert res.returncode == 0, res.stderr
     return out
 
@@ -91,8 +91,8 @@ def test_corrupt_inputs_are_one_line_errors_and_nothing_is_damaged(cli_session, 
 
 def test_session_into_another_sessions_folder_is_refused(cli_session):
     before = (cli_session / "session.json").read_bytes()
-    res = run("sim", "session", "--scene", "single/06", "--steps", "2", "--step-deg", "90", "--arm-positions", "1",
-              "--width", "96", "--height", "72", "--out", cli_session)
+    res = run("capture", "run", "--sim", "--scene", "single/06", "--steps", "2", "--step-deg", "90",
+              "--arm-positions", "1", "--width", "96", "--height", "72", "--out", cli_session, "--yes")
     one_line_error(res, "different session")
     assert (cli_session / "session.json").read_bytes() == before
 

@@ -304,6 +304,7 @@ def test_grab_with_real_depthai_messages():
     f = camera_on({"rgbd": FakeQueue([(0.0, g)])}).grab(1.0)
     assert np.abs(f.rgb[0, 0].astype(int) - (250, 0, 5)).max() <= 6
     assert (f.depth == 777).all() and f.t_rgb == pytest.approx(T0 + 0.1)
+    assert "K_frame" not in f.meta                   # host-made frames carry no valid transformation
 
 
 def test_grab_times_out_with_hardware_error():
@@ -486,6 +487,47 @@ def test_connect_reads_intrinsics_and_close_releases(monkeypatch):
         cam.grab(0.1)
 
 
+class _FakeTransformation:
+    def __init__(self, K, size):
+        self.K, self.size = K, size
+
+    def isValid(self):
+        return True
+
+    def getSize(self):
+        return self.size
+
+    def getIntrinsicMatrix(self):
+        return self.K
+
+
+def test_connect_prefers_the_intrinsics_frames_carry(monkeypatch):
+    K = [[510.0, 0, 33.0], [0, 511.0, 23.5], [0, 0, 1]]
+
+    def make_rgb(t):
+        f = FakeFrame(bgr(1), t)
+        f.getTransformation = lambda: _FakeTransformation(K, (W, H))
+        return f
+
+    t_fixed = {}
+
+    def stamp(t):
+        return t_fixed.setdefault("t", t)
+
+    monkeypatch.setattr(oakd, "_import_depthai", lambda: _FakeDai)
+    monkeypatch.setattr(oakd, "open_device", lambda device_id, timeout_s: _FakeDevice())
+    monkeypatch.setattr(oakd, "build_pipeline", lambda *a, **k: {
+        "rgb": _LiveQueue(lambda t: make_rgb(stamp(t))), "depth": _LiveQueue(lambda t: FakeFrame(depth(1), stamp(t)))})
+    cam = OakDCamera(width=W, height=H)
+    cam.connect()
+    intr = cam.intrinsics()
+    assert intr["K"] == [510.0, 0, 33.0, 0, 511.0, 23.5, 0, 0, 1] and intr["K_source"] == "frame"
+    cam.close()
+    # a transformation of another size (or an invalid one, as host-made frames carry) is ignored
+    assert OakDCamera(width=W, height=H)._frame_intrinsics(types.SimpleNamespace(
+        getTransformation=lambda: _FakeTransformation(K, (2 * W, 2 * H)))) is None
+
+
 def test_connect_failure_in_pipeline_is_one_line_and_closes(monkeypatch):
     dev = _FakeDevice()
 
@@ -518,3 +560,57 @@ def test_build_pipeline_is_importable_and_documented():
     assert {k: ctor[k].default for k in ctor} == {
         "width": 640, "height": 480, "fps": 10.0, "device_id": None, "connect_timeout_s": 10.0,
         "max_sync_skew_s": 0.02, "extended_disparity": False, "subpixel": True, "lr_check": True}
+
+
+class _SpecPipeline:
+    """A dai.Pipeline stand-in whose nodes are mocks spec'd on the installed depthai classes, so
+    build_pipeline's node and method names are checked against depthai without a device."""
+
+    def __init__(self, platform=None):
+        from unittest import mock
+
+        self.mock, self.nodes, self.platform = mock, [], platform
+
+    def create(self, cls):
+        node = self.mock.MagicMock(spec=cls, name=cls.__name__)
+        if hasattr(cls, "build"):
+            node.build.return_value = node
+        self.nodes.append((cls, node))
+        return node
+
+    def getDefaultDevice(self):
+        return types.SimpleNamespace(getPlatform=lambda: self.platform)
+
+    def of(self, cls):
+        return [n for c, n in self.nodes if c is cls]
+
+
+def test_build_pipeline_names_exist_in_installed_depthai():
+    dai = pytest.importorskip("depthai")
+    p = _SpecPipeline(platform=dai.Platform.RVC2)
+    queues = build_pipeline(p, 640, 480, 10.0, extended_disparity=True, subpixel=True, lr_check=False)
+    assert set(queues) == {"rgb", "depth"}
+    cams = p.of(dai.node.Camera)
+    assert [c.build.call_args.args[0] for c in cams] == [dai.CameraBoardSocket.CAM_A, dai.CameraBoardSocket.CAM_B,
+                                                        dai.CameraBoardSocket.CAM_C]
+    rgb_call = cams[0].requestOutput.call_args
+    assert rgb_call.args[0] == (640, 480) and rgb_call.kwargs["type"] == dai.ImgFrame.Type.BGR888i
+    (stereo,) = p.of(dai.node.StereoDepth)
+    stereo.setExtendedDisparity.assert_called_once_with(True)
+    stereo.setLeftRightCheck.assert_called_once_with(False)
+    cams[0].requestOutput.return_value.link.assert_any_call(stereo.inputAlignTo)
+    stereo.setDepthAlign.assert_not_called()
+
+    p = _SpecPipeline()
+    build_pipeline(p, 640, 480, 10.0, align="socket")
+    (stereo,) = p.of(dai.node.StereoDepth)
+    stereo.setDepthAlign.assert_called_once_with(dai.CameraBoardSocket.CAM_A)
+    stereo.setOutputSize.assert_called_once_with(640, 480)
+
+    p = _SpecPipeline(platform=dai.Platform.RVC4)
+    queues = build_pipeline(p, 640, 480, 10.0, use_sync_node=True, max_sync_skew_s=0.025)
+    assert set(queues) == {"rgbd"} and len(p.of(dai.node.ImageAlign)) == 1
+    (sync,) = p.of(dai.node.Sync)
+    sync.setSyncThreshold.assert_called_once_with(timedelta(seconds=0.025))
+    with pytest.raises(ValueError, match="align must be"):
+        build_pipeline(_SpecPipeline(), 640, 480, 10.0, align="centre")

@@ -567,6 +567,7 @@ class OakDCamera(RGBDCamera):
         timeout_s = float(timeout_s)
         deadline = time.monotonic() + timeout_s
         t_start = float(self._clock())
+        self._sync.max_skew_s = self.max_sync_skew_s
         self._sync.reset(min_t=None)
         n_rgb = n_depth = 0
         while True:
@@ -595,6 +596,19 @@ class OakDCamera(RGBDCamera):
             if not got:
                 time.sleep(0.001)
 
+    def _frame_intrinsics(self, msg: Any) -> list[float] | None:
+        """The 3x3 K (row-major) a depthai frame carries in its ImgTransformation (v3), when it is
+        valid and for this output size; None otherwise (fakes, host-made frames)."""
+        tr = _try(lambda: msg.getTransformation())
+        if tr is None or not _try(lambda: bool(tr.isValid()), False):
+            return None
+        if tuple(_try(lambda: tuple(tr.getSize()), ())) != (self.width, self.height):
+            return None
+        K = _try(lambda: np.asarray(tr.getIntrinsicMatrix(), dtype=float))
+        if K is None or K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 1.0 or K[1, 1] <= 1.0:
+            return None
+        return [float(v) for v in K.reshape(9)]
+
     def _to_frame(self, pair: FramePair) -> RGBDFrame:
         hw = (self.height, self.width)
         rgb = frame_to_rgb(pair.rgb, expected_hw=hw)
@@ -607,9 +621,9 @@ class OakDCamera(RGBDCamera):
             t_dev = _try(lambda: msg.getTimestampDevice())
             if t_dev is not None:
                 meta[f"t_{key}_device"] = to_seconds(t_dev)
-        K_frame = _try(lambda: np.asarray(pair.rgb.getTransformation().getIntrinsicMatrix(), float))
-        if K_frame is not None and K_frame.shape == (3, 3) and np.all(np.isfinite(K_frame)) and K_frame[0, 0] > 0:
-            meta["K_frame"] = [float(v) for v in K_frame.reshape(9)]
+        K_frame = self._frame_intrinsics(pair.rgb)
+        if K_frame is not None:
+            meta["K_frame"] = K_frame
         if self._intrinsics is not None and self._intrinsics.get("device"):
             meta["device"] = self._intrinsics["device"]
         return RGBDFrame(rgb=rgb, depth=depth, t_rgb=pair.t_rgb, t_depth=pair.t_depth, meta=meta)
