@@ -18,7 +18,9 @@ app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_
 objects_app = typer.Typer(no_args_is_help=True, help="The 20-object catalog: list, export, picture.")
 sim_app = typer.Typer(no_args_is_help=True, help="The simulated rig: scenes, frames, contact sheets.")
 capture_app = typer.Typer(no_args_is_help=True, help="Capture sessions on the rig or the simulator: plan, run, verify.")
+dataset_app = typer.Typer(no_args_is_help=True, help="Assemble annotated scenes into the TDoF20 dataset and its splits.")
 app.add_typer(capture_app, name="capture")
+app.add_typer(dataset_app, name="dataset")
 app.add_typer(objects_app, name="objects")
 app.add_typer(sim_app, name="sim")
 
@@ -212,6 +214,17 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
     console.print(f"wrote frames and {sheet}")
 
 
+@sim_app.command("label")
+def sim_label(session: Path = typer.Argument(..., help="simulated raw session (with truth/)"),
+              out: Path = typer.Option(..., "--out", help="annotated scene folder to write")) -> None:
+    """Labels from the simulator's exact truth (an oracle annotation): a BOP scene in the format
+    the annotation pipeline writes, ready for `tdof20 dataset build`."""
+    from tdof20.sim.truth import oracle_scene
+
+    oracle_scene(session, out)
+    console.print(f"oracle-labelled scene in {out}")
+
+
 @sim_app.command("sheet")
 def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
               out: Optional[Path] = typer.Option(None, help="PNG to write (default: SESSION/contact_sheet.png)"),
@@ -223,6 +236,71 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
     out = out or session / "contact_sheet.png"
     write_png(out, session_contact_sheet(session, frames))
     console.print(f"wrote {out}")
+
+
+# ----------------------------------------------------------------------------------- dataset
+@dataset_app.command("build")
+def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene folders (BOP scene + scene_info.json + models/)"),
+                  out: Path = typer.Option(..., "--out", help="dataset root (created)")) -> None:
+    """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
+    from tdof20.benchmark.dataset import build_dataset
+
+    s = build_dataset(scenes, out)
+    _print_stats(s)
+    console.print(f"dataset in {out}")
+
+
+@dataset_app.command("stats")
+def dataset_stats(root: Path = typer.Argument(..., help="dataset root"),
+                  json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
+    """Counts per split, scene and object (the paper's figures beside the splits)."""
+    import json
+
+    from tdof20.benchmark.dataset import stats
+
+    s = stats(root)
+    if json_out:
+        print(json.dumps(s, indent=2))
+    else:
+        _print_stats(s)
+
+
+@dataset_app.command("pack")
+def dataset_pack(root: Path = typer.Argument(..., help="dataset root"),
+                 split: str = typer.Option(..., help="simple or hard"),
+                 part: str = typer.Option(..., help="train or test"),
+                 out: Path = typer.Option(..., "--out", help="HDF5 file to write")) -> None:
+    """Write what training reads (colour, depths, masks, poses, camera) into one HDF5 file."""
+    from tdof20.benchmark.dataset import pack
+
+    pack(root, split, part, out)
+    console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)")
+
+
+def _print_stats(s: dict) -> None:
+    from tdof20.benchmark.splits import PAPER_HARD, PAPER_SIMPLE
+    from tdof20.objects import get_object
+
+    t = Table(title=f"{s['scenes']} scenes, {s['images']} images")
+    for c in ("split", "train", "test", "test targets", "paper train : test"):
+        t.add_column(c, justify="right")
+    sp = s["splits"]
+    for name, paper in (("simple", PAPER_SIMPLE), ("hard", PAPER_HARD)):
+        t.add_row(name, str(sp[f"{name}_train"]), str(sp[f"{name}_test"]), str(sp[f"{name}_targets"]),
+                  f"{paper[0]} : {paper[1]}")
+    out_console.print(t)
+    t = Table(title="images per scene")
+    t.add_column("scene")
+    t.add_column("images", justify="right")
+    for name, n in sorted(s["per_scene"].items()):
+        t.add_row(name, str(n))
+    out_console.print(t)
+    t = Table(title="images per object")
+    for c in ("id", "name", "images"):
+        t.add_column(c)
+    for oid, n in s["per_object"].items():
+        t.add_row(str(oid), get_object(int(oid)).name, str(n))
+    out_console.print(t)
 
 
 # ----------------------------------------------------------------------------------- demo

@@ -43,3 +43,53 @@ def write_truth(renderer: SimRenderer, session_dir: str | Path, steps: int, step
             if (i + 1) % 200 == 0:
                 writer.flush()
     return out
+
+
+def oracle_scene(session_dir: str | Path, out_dir: str | Path, show_progress: bool = True) -> Path:
+    """An annotated scene made from the simulator's exact truth — the labels a perfect annotator
+    would write — in the format ``tdof20 annotate`` writes: a BOP scene with rgb/ and depth/ of
+    the transparent phase, depth_opaque/ (the opaque twins' depth as recorded), depth_restored/
+    (the exact depth of the scene with the objects opaque), masks, the three JSON files, the
+    models in models/, and scene_info.json. It is the reference an annotation is measured against,
+    and the way to build datasets before (or without) annotating."""
+    import shutil
+
+    from tdof20.errors import TdofError
+    from tdof20.formats import RawSession, read_scene, write_json
+
+    session = RawSession.open(session_dir)
+    if session.truth_dir is None or not (session.truth_dir / "scene_gt.json").exists():
+        raise TdofError("has no truth/ (only simulated sessions do)", session_dir)
+    truth = read_scene(session.truth_dir)
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not (out / "scene_info.json").exists():
+        raise TdofError("folder is not empty and holds no scene; choose another --out", out)
+    steps = session.info.steps
+    with progress(show_progress) as bar:
+        task = bar.add_task("oracle labels", total=len(truth.im_ids()))
+        for im_id in truth.im_ids():
+            arm, step = divmod(im_id, steps)
+            name = f"{im_id:06d}.png"
+            pairs = [(session.path / session.entry("transparent", arm, step).rgb, out / "rgb" / name),
+                     (session.path / session.entry("transparent", arm, step).depth, out / "depth" / name),
+                     (session.truth_dir / "depth" / name, out / "depth_restored" / name)]
+            if session.has_frame("opaque", arm, step):
+                pairs.append((session.path / session.entry("opaque", arm, step).depth, out / "depth_opaque" / name))
+            for g in range(len(truth.gt[im_id])):
+                for kind in ("mask", "mask_visib"):
+                    m = f"{im_id:06d}_{g:06d}.png"
+                    pairs.append((session.truth_dir / kind / m, out / kind / m))
+            for src, dst in pairs:
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(src, dst)
+            bar.advance(task)
+    for f in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
+        shutil.copyfile(session.truth_dir / f, out / f)
+    if (out / "models").exists():
+        shutil.rmtree(out / "models")
+    shutil.copytree(session.truth_dir / "models", out / "models")
+    write_json(out / "scene_info.json", {
+        "scene_id": session.info.scene_id, "n_arms": session.info.n_arms, "steps": steps,
+        "step_deg": session.info.step_deg, "labels": "oracle (simulator truth)",
+        "source_session": str(Path(session_dir).resolve())})
+    return out

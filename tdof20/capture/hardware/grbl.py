@@ -46,10 +46,12 @@ from __future__ import annotations
 import argparse
 import collections
 import errno
+import functools
 import logging
 import math
 import os
 import re
+import threading
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -172,6 +174,15 @@ class _NoAnswer(HardwareError):
     """Nothing (useful) came back before a deadline."""
 
 
+def _locked(fn):
+    """Run a public method under the driver's I/O lock (one conversation with GRBL at a time)."""
+    @functools.wraps(fn)
+    def wrapper(self, *args, **kwargs):
+        with self._io:
+            return fn(self, *args, **kwargs)
+    return wrapper
+
+
 @dataclass(frozen=True)
 class GrblStatus:
     """A parsed real-time status report (positions in axis units)."""
@@ -265,6 +276,8 @@ class GrblTurntable(Turntable):
         self._needs_resync = False       # after stop(): the controller was reset
         self._saved_wco: float | None = None
         self._reference_lost = False     # the controller reset by itself: home again
+        self._io = threading.RLock()
+        self._stop_requested = threading.Event()
 
     # ------------------------------------------------------------------ public API
 
@@ -276,6 +289,7 @@ class GrblTurntable(Turntable):
     def connected(self) -> bool:
         return self._ser is not None
 
+    @_locked
     def connect(self) -> None:
         """Open the port, wake GRBL, check its state, set G21 G90 G94 G54 and read the offsets."""
         self.close()
@@ -290,6 +304,8 @@ class GrblTurntable(Turntable):
             raise HardwareError(self.device, self._open_problem(e), retryable=False) from e
         try:
             st = self._handshake()
+            if st.state in ("Run", "Jog", "Home", "Hold", "Door"):
+                st = self._wait_idle(st)
             if st.state == "Alarm":
                 code = self._alarm if self._alarm is not None else st.substate
                 if not self.home_on_connect:
@@ -314,6 +330,7 @@ class GrblTurntable(Turntable):
             except Exception:  # noqa: BLE001 - close never raises
                 pass
 
+    @_locked
     def home(self, timeout_s: float) -> None:
         """``$H`` (homing cycle), then make the table's angle 0 (``G92`` if needed)."""
         self._ready(allow_alarm=True)
@@ -339,6 +356,7 @@ class GrblTurntable(Turntable):
         self._reference_lost = False
         self._alarm = None
 
+    @_locked
     def move_to(self, angle_deg: float, timeout_s: float) -> float:
         """``G90 G1`` to ``angle_deg``, poll ``?`` until Idle at the target; returns the reported angle."""
         angle_deg = float(angle_deg)
@@ -350,6 +368,8 @@ class GrblTurntable(Turntable):
         if self._reference_lost:
             raise HardwareError(self.device, "the controller was reset: the angle reference is lost, "
                                 "home the table before moving it", retryable=False)
+        if self._alarm is not None:           # GRBL is locked (and deaf after a limit) until $H / $X / reset
+            raise GrblAlarm(self.device, self._alarm, f"not cleared, cannot move to {angle_deg:g} deg")
         target = angle_deg * self.units_per_degree
         tol = self._tolerance_units()
         line = f"G90 G1 {self.axis}{target:.4f} F{self.feed_units_per_min:.3f}"
@@ -386,11 +406,13 @@ class GrblTurntable(Turntable):
         """The angle the controller reports, degrees."""
         return self._work_units(self.status()) / self.units_per_degree
 
+    @_locked
     def status(self) -> GrblStatus:
         """A fresh status report."""
         self._ready(allow_alarm=True)
         return self._query_status(time.monotonic() + self.timeout_s)
 
+    @_locked
     def unlock(self) -> None:
         """``$X``: leave an alarm without homing (the operator checked the table)."""
         self._ready(allow_alarm=True)
@@ -399,24 +421,31 @@ class GrblTurntable(Turntable):
         self._set_modes()
         self._refresh_wco()
 
+    @_locked
     def command(self, line: str, timeout_s: float | None = None) -> None:
         """Send one raw line and wait for its ``ok`` (for manual use; no re-send)."""
         self._ready(allow_alarm=True)
         self._command(line.strip(), timeout_s=timeout_s, resend=False)
 
     def stop(self) -> None:
-        """Feed hold ``!``, wait briefly for the table to stop, then soft reset (0x18); never raises.
-
-        A reset after a completed hold keeps the position; the next call re-applies the modes and
-        the G92 offset. A reset in motion puts GRBL in ALARM:3 (home again)."""
+        """Feed hold ``!`` now, wait (at most ``timeout_s``) for the table to stop, then soft reset
+        (0x18); never raises. Callable from another thread: a running move_to()/home() there ends with
+        a HardwareError. A reset after a completed hold keeps the position and the next call re-applies
+        the modes and the G92 offset; a reset in motion puts GRBL in ALARM:3 (home again)."""
         if self._ser is None:
             return
+        self._stop_requested.set()
+        try:
+            self._write(b"!")                 # at once, even while another thread talks to GRBL
+        except Exception as e:  # noqa: BLE001 - best effort
+            log.debug("%s: feed hold: %s", self.device, e)
+        got = self._io.acquire(timeout=self.timeout_s)
+        self._stop_requested.clear()
         self._collect_alarms = True
         try:
             try:
-                self._write(b"!")
-                if self._alarm is None:
-                    end = time.monotonic() + min(1.0, self.timeout_s)
+                if got and self._alarm is None and not self._needs_resync:
+                    end = time.monotonic() + self.timeout_s
                     while time.monotonic() < end:
                         st = self._query_status(end)
                         if st.state in ("Idle", "Alarm", "Sleep", "Door", "Check") or \
@@ -424,18 +453,21 @@ class GrblTurntable(Turntable):
                             break
                         self._pump(min(end, time.monotonic() + 0.02))
             except Exception as e:  # noqa: BLE001 - best effort
-                log.debug("%s: feed hold: %s", self.device, e)
+                log.debug("%s: waiting for the hold: %s", self.device, e)
             try:
                 if not self._needs_resync:
                     self._saved_wco = self._wco
                 self._expect_reset = True
                 self._needs_resync = True
                 self._write(b"\x18")
-                self._drain_quiet(0.05, time.monotonic() + 0.3)
+                if got:
+                    self._drain_quiet(0.05, time.monotonic() + 0.3)
             except Exception as e:  # noqa: BLE001 - best effort
                 log.debug("%s: soft reset: %s", self.device, e)
         finally:
             self._collect_alarms = False
+            if got:
+                self._io.release()
 
     # ------------------------------------------------------------------ protocol
 
@@ -518,6 +550,18 @@ class GrblTurntable(Turntable):
             self._command(f"G92 {self.axis}{mpos - self._saved_wco:.4f}", deadline=deadline)
             self._refresh_wco(deadline)
         self._saved_wco = None
+
+    def _wait_idle(self, st: GrblStatus) -> GrblStatus:
+        """At connect the controller is still busy (a move of a previous run): wait for it."""
+        end = time.monotonic() + self.timeout_s
+        while st.state in ("Run", "Jog", "Home") and time.monotonic() < end:
+            self._pump(min(end, time.monotonic() + self.poll_s))
+            st = self._query_status(end)
+        if st.state in ("Run", "Jog", "Home", "Hold", "Door"):
+            why = {"Hold": "in a feed hold (resume with '~' or reset)", "Door": "stopped by the safety door"}
+            raise HardwareError(self.device, f"GRBL is {why.get(st.state, f'busy ({st.state})')} at connect; "
+                                "is another program driving it?")
+        return st
 
     def _check_usable(self, st: GrblStatus, context: str) -> None:
         if st.state == "Check":
@@ -647,8 +691,10 @@ class GrblTurntable(Turntable):
             raise _NoAnswer(self.device, f"no answer within {time.monotonic() - start:.3g} s: waited for {what}")
 
     def _pump(self, deadline: float, until: Callable[[], bool] | None = None) -> None:
-        """Read and handle lines until ``until()`` holds or the deadline passes (reads at least once)."""
+        """Read and handle lines until ``until()`` holds or the deadline passes."""
         while True:
+            if self._stop_requested.is_set():
+                raise HardwareError(self.device, "interrupted by stop()")
             self._handle_buffered()
             if until is not None and until():
                 return
