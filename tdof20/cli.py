@@ -306,15 +306,18 @@ def _print_stats(s: dict) -> None:
 # ----------------------------------------------------------------------------------- demo
 @app.command("demo")
 def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything the demo writes"),
-         scene: str = SCENE,
+         scenes: str = typer.Option("single/03,multi/08", help="comma-separated scene names"),
          steps: int = typer.Option(8, help="turntable steps per arm position"),
          step_deg: float = typer.Option(45.0, help="turntable step in degrees"),
          arm_positions: int = typer.Option(4, help="number of arm positions"),
          width: int = WIDTH, height: int = HEIGHT, seed: int = SEED) -> None:
-    """Run the main job end to end on the simulator: a short simulated session and its contact sheet."""
+    """Run the main job end to end on the simulator: capture, labels, dataset, contact sheet."""
     from tdof20.demo import run_demo
 
-    run_demo(out, scene=scene, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,
+    names = tuple(x.strip() for x in scenes.split(",") if x.strip())
+    if not names:
+        raise TdofError("--scenes needs at least one scene name")
+    run_demo(out, scenes=names, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,
              height=height, seed=seed)
 
 

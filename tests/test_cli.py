@@ -33,7 +33,7 @@ def test_help_lists_only_built_commands():
     assert res.returncode == 0
     import re
     commands = set(re.findall(r"^│ (\w+) ", res.stdout, flags=re.M))
-    assert commands == {"demo", "capture", "objects", "sim"}
+    assert commands == {"demo", "capture", "dataset", "objects", "sim"}
 
 
 def test_objects_list_and_export(tmp_path):
@@ -113,3 +113,19 @@ def test_demo_runs_end_to_end(tmp_path):
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "demo" / "contact_sheet.png").exists()
     assert "contact sheet" in res.stderr + res.stdout
+
+
+def test_dataset_commands(tmp_path):
+    raw = tmp_path / "raw"
+    assert run("capture", "run", "--sim", "--scene", "multi/02", "--steps", "2", "--step-deg", "90",
+               "--arm-positions", "1", "--width", "64", "--height", "48", "--out", raw, "--yes").returncode == 0
+    assert run("sim", "label", raw, "--out", tmp_path / "lab").returncode == 0
+    res = run("dataset", "build", tmp_path / "lab", "--out", tmp_path / "root")
+    assert res.returncode == 0, res.stderr
+    res = run("dataset", "stats", tmp_path / "root", "--json")
+    assert json.loads(res.stdout)["splits"]["hard_test"] == 2
+    res = run("dataset", "pack", tmp_path / "root", "--split", "hard", "--part", "test", "--out", tmp_path / "t.h5")
+    assert res.returncode == 0 and (tmp_path / "t.h5").exists()
+    one_line_error(run("dataset", "pack", tmp_path / "root", "--split", "medium", "--part", "test",
+                       "--out", tmp_path / "u.h5"), "medium")
+    one_line_error(run("dataset", "stats", tmp_path / "nothing"), "dataset_info.json")
