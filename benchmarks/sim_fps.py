@@ -24,10 +24,13 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    ap.add_argument("--no-threads", action="store_true", help="render colour and depth one after the other")
     a = ap.parse_args()
     cfg = sim_config(a.scene, width=a.width, height=a.height)
     t = time.perf_counter()
     r = build_rig(cfg).world.renderer
+    if a.no_threads:
+        r._pool = None
     setup = time.perf_counter() - t
     out = {"scene": a.scene, "objects": len(r.scene.placements), "size": f"{a.width}x{a.height}",
            "setup_s": round(setup, 3)}

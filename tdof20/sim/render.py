@@ -17,6 +17,7 @@ and ``opaque`` (diffuse twins; stereo noise growing with z^2 and holes at discon
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -24,6 +25,7 @@ import numpy as np
 import trimesh
 
 from tdof20.geometry import PinholeCamera, invert, transform_points
+from tdof20.geometry.raycast import ModelRaycaster, convex_hull_points, hull_roi
 from tdof20.o3d import o3d
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout
@@ -81,7 +83,7 @@ class SimRenderer:
 
     def __init__(self, scene: SceneSpec, camera: PinholeCamera, layout: RigLayout,
                  T_base_cams: list[np.ndarray], sensor: SensorModel | None = None,
-                 glass: GlassModel | None = None, seed: int = 0):
+                 glass: GlassModel | None = None, seed: int = 0, threads: bool = True):
         self.scene = scene
         self.camera = camera
         self.layout = layout
@@ -104,6 +106,8 @@ class SimRenderer:
         self._noise_rgb = rng.standard_normal((h + self._pad, w + self._pad, 3), dtype=np.float32)
         self._noise_depth = rng.standard_normal((h + self._pad, w + self._pad), dtype=np.float32)
         self._uniform = rng.random((h + self._pad, w + self._pad), dtype=np.float32)
+        self._twin_albedo = np.stack([_twin_colour(o.obj_id) for o in self.objects])
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim-depth") if threads else None
 
     # ------------------------------------------------------------------ scene building
     def _build_world(self) -> None:
@@ -133,7 +137,6 @@ class SimRenderer:
     def _build_objects(self) -> None:
         self._objects = o3d.t.geometry.RaycastingScene()
         self._obj_faces, self._obj_vnormals = [], []
-        self._model_scenes = []
         for p, obj in zip(self.scene.placements, self.objects):
             v_table = transform_points(p.T_table_obj, obj.vertices).astype(np.float32)
             faces = np.asarray(obj.faces, np.int32)
@@ -141,14 +144,11 @@ class SimRenderer:
             vn = trimesh.Trimesh(obj.vertices, obj.faces, process=False).vertex_normals
             self._obj_faces.append(faces)
             self._obj_vnormals.append((vn @ p.T_table_obj[:3, :3].T).astype(np.float32))
-            ms = o3d.t.geometry.RaycastingScene()
-            ms.add_triangles(o3d.core.Tensor(obj.vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-            self._model_scenes.append(ms)
         # the three vertex normals of every face, all objects concatenated: (F, 9), table frame
         self._face_vn = np.concatenate([vn[f].reshape(-1, 9) for f, vn in zip(self._obj_faces, self._obj_vnormals)])
         self._face_offset = np.concatenate([[0], np.cumsum([len(f) for f in self._obj_faces])[:-1]]).astype(np.int64)
-        self._hulls = [np.asarray(trimesh.Trimesh(o.vertices, o.faces, process=False).convex_hull.vertices)
-                       for o in self.objects]
+        self._hulls = [convex_hull_points(o.vertices, o.faces) for o in self.objects]
+        self._models = ModelRaycaster({o.obj_id: (o.vertices, o.faces) for o in self.objects}, self.camera)
 
 
     # ------------------------------------------------------------------ helpers
@@ -238,27 +238,10 @@ class SimRenderer:
         T_cam_table = invert(self.T_base_cams[arm]) @ self.layout.T_base_table(angle_deg)
         return [T_cam_table @ p.T_table_obj for p in self.scene.placements]
 
-    def _roi(self, poses: list[np.ndarray], hulls: list[np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
-        """(mask (H,W), box) where a ray can meet one of the objects: the filled projections of
-        their convex hulls grown by a pixel, and the bounding box (v0, v1, u0, u1) of the mask
-        (None when empty). Everything when an object reaches behind the camera."""
-        h, w = self.camera.height, self.camera.width
-        roi = np.zeros((h, w), np.uint8)
-        lo, hi = np.array([np.inf, np.inf]), np.array([-np.inf, -np.inf])
-        for T, hull in zip(poses, hulls if hulls is not None else self._hulls):
-            pc = transform_points(T, hull)
-            if np.any(pc[:, 2] <= 1.0):
-                return np.ones((h, w), bool), (0, h, 0, w)
-            uv, _ = self.camera.project(pc)
-            pts = cv2.convexHull(np.rint(uv).astype(np.int32))
-            cv2.fillConvexPoly(roi, pts, 1)
-            cv2.polylines(roi, [pts], True, 1, 2)
-            lo, hi = np.minimum(lo, pts.reshape(-1, 2).min(0)), np.maximum(hi, pts.reshape(-1, 2).max(0))
-        m = max(2, self.sensor.rim_px + 1)  # room for the flying-pixel band
-        u0, v0 = np.maximum(lo - m, 0).astype(int)
-        u1, v1 = (np.minimum(hi + m + 1, [w, h])).astype(int)
-        box = (v0, v1, u0, u1) if (v1 > v0 and u1 > u0) else None
-        return roi.astype(bool), box
+    def _roi(self, poses: list[np.ndarray]) -> tuple[np.ndarray, tuple]:
+        """(mask, box) of the pixels whose rays can meet an object (see geometry.raycast.hull_roi);
+        the box leaves room for the flying-pixel band."""
+        return hull_roi(self.camera, poses, self._hulls, margin=max(2, self.sensor.rim_px + 1))
 
     # ------------------------------------------------------------------ rendering
     def frame_rng(self, phase: str, arm: int, angle_deg: float) -> np.random.Generator:
@@ -307,15 +290,27 @@ class SimRenderer:
         h, w = cam.height, cam.width
         rng = self.frame_rng(phase, arm, angle_deg)
         geo = self._geometry(arm, angle_deg)
-        bg, poses, roi2d, box = geo["bg"], geo["poses"], geo["roi"], geo["box"]
-        label, z_obj, vi = geo["label"], geo["z_obj"], geo["vi"]
-        z_bg = bg["z"].reshape(-1)
+        poses, label = geo["poses"], geo["label"]
+        oy, ox = rng.integers(0, self._pad, 2)  # drawn first: the two halves below use rng in a fixed order
+        # depth and colour are independent given the geometry: the depth half runs in a second
+        # thread (numpy and OpenCV release the GIL), so both cores work on one frame
+        if self._pool is None:
+            rgb = self._colour_half(phase, arm, angle_deg, geo, oy, ox)
+            depth, z_true = self._depth_half(phase, geo, rng, oy, ox)
+        else:
+            fut = self._pool.submit(self._depth_half, phase, geo, rng, oy, ox)
+            rgb = self._colour_half(phase, arm, angle_deg, geo, oy, ox)
+            depth, z_true = fut.result()
+        return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
+
+    def _colour_half(self, phase: str, arm: int, angle_deg: float, geo: dict, oy: int, ox: int) -> np.ndarray:
+        """The colour image (H,W,3) uint8 of a view."""
+        h, w = self.camera.height, self.camera.width
+        bg, vi, z_obj = geo["bg"], geo["vi"], geo["z_obj"]
         T_base_cam = self.T_base_cams[arm]
         R_cam_table = geo["T_table_cam"][:3, :3].T
-
         # background colour: static room + the sticker at this table angle
         colour = self._draw_sticker(bg["colour"].copy(), bg["sticker_maps"], angle_deg).reshape(-1, 3)
-
         if len(vi):
             gid = geo["gid"]
             n_table = self._interp_normals(gid, geo["prim"], geo["uv"])
@@ -324,7 +319,7 @@ class SimRenderer:
             n_cam *= np.where(np.einsum("ij,ij->i", n_cam, d_cam) > 0, -1.0, 1.0).astype(np.float32)[:, None]
             L_cam = (T_base_cam[:3, :3].T @ LIGHT_DIR).astype(np.float32)
             if phase == "opaque":
-                albedo = np.stack([_twin_colour(self.objects[g].obj_id) for g in range(len(self.objects))])[gid]
+                albedo = self._twin_albedo[gid]
                 lam = AMBIENT + (1 - AMBIENT) * np.clip(n_cam @ L_cam, 0, 1)
                 hvec = L_cam[None, :] - d_cam
                 hvec /= np.linalg.norm(hvec, axis=1, keepdims=True)
@@ -333,25 +328,24 @@ class SimRenderer:
             else:
                 colour[vi] = self._glass_colour(vi, z_obj[vi], d_cam, n_cam, L_cam, T_base_cam,
                                                 colour.reshape(h, w, 3), bg["z"])
+        # sensor noise from the bank, at this frame's offset
+        return cv2.addWeighted(colour.reshape(h, w, 3), 255.0, self._noise_rgb[oy:oy + h, ox:ox + w],
+                               self.sensor.rgb_sigma, 0.0, dtype=cv2.CV_8U)
 
-        # RGB with sensor noise
-        oy, ox = rng.integers(0, self._pad, 2)
-        rgb = cv2.addWeighted(colour.reshape(h, w, 3), 255.0, self._noise_rgb[oy:oy + h, ox:ox + w],
-                              self.sensor.rgb_sigma, 0.0, dtype=cv2.CV_8U)
+    def _depth_half(self, phase: str, geo: dict, rng: np.random.Generator, oy: int, ox: int):
+        """(depth (H,W) uint16 as the sensor reports it, noise-free depth (H,W) float32 mm)."""
+        cam = self.camera
+        h, w = cam.height, cam.width
+        bg, box, z_obj = geo["bg"], geo["box"], geo["z_obj"]
         noise = self._noise_depth[oy:oy + h, ox:ox + w]
         uniform = self._uniform[oy:oy + h, ox:ox + w]
-
-        # depth
-        z_true = np.minimum(z_obj, z_bg).reshape(h, w)
-        z_obj_img = z_obj.reshape(h, w)
-        glass = (label >= 0).reshape(h, w)
+        z_true = np.minimum(z_obj, bg["z"].reshape(-1)).reshape(h, w)
         if phase == "opaque":
-            z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform,
-                                    self._holes(z_true, bg, box))
+            z_sensor = stereo_depth(z_true, cam.fx, self.sensor, rng, noise, uniform, self._holes(z_true, bg, box))
         else:
-            z_sensor = self._glass_depth(z_obj_img, bg, glass, box, rng, noise, uniform)
-        depth = cam.mm_to_depth(z_sensor)
-        return Frame(rgb, depth, label.reshape(h, w), poses, depth_true=z_true)
+            glass = (geo["label"] >= 0).reshape(h, w)
+            z_sensor = self._glass_depth(z_obj.reshape(h, w), bg, glass, box, rng, noise, uniform)
+        return cam.mm_to_depth(z_sensor), z_true
 
     def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Smooth (barycentric) vertex normals at ray hits, table frame, (N,3) unit."""
@@ -457,13 +451,4 @@ class SimRenderer:
 
     def full_masks(self, poses: list[np.ndarray]) -> list[np.ndarray]:
         """Unoccluded silhouette (H,W) bool of every object at the given poses."""
-        h, w = self.camera.height, self.camera.width
-        out = []
-        for T, hull, ms in zip(poses, self._hulls, self._model_scenes):
-            idx = np.flatnonzero(self._roi([T], [hull])[0])
-            T_obj_cam = invert(T)
-            hit = self._cast(ms, T_obj_cam[:3, 3], self._rays_cam[idx] @ T_obj_cam[:3, :3].T.astype(np.float32))
-            m = np.zeros(h * w, bool)
-            m[idx[np.isfinite(hit["t_hit"])]] = True
-            out.append(m.reshape(h, w))
-        return out
+        return self._models.render([(p.obj_id, T) for p, T in zip(self.scene.placements, poses)]).full
