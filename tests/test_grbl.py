@@ -111,9 +111,13 @@ def test_alarm_at_start_is_reported_in_words_and_refuses_to_move(emu_factory, co
     table = table_for(emu, home=True)
     table.connect()
     try:
-        with pytest.raises(GrblError) as err:
+        with pytest.raises(HardwareError) as err:
             table.move_to(90.0, timeout_s=1.0)
-        assert err.value.code == 9 and "G-code lock" in str(err.value) and not err.value.retryable
+        assert not err.value.retryable
+        if code:                                      # the driver saw ALARM:N: it does not even try
+            assert isinstance(err.value, GrblAlarm) and words in str(err.value)
+        else:                                         # the code-less lock: GRBL answers error:9
+            assert isinstance(err.value, GrblError) and err.value.code == 9 and "G-code lock" in str(err.value)
         assert emu.wpos[0] == pytest.approx(0.0) and emu.state == "Alarm"
         table.home(2.0)
         assert table.move_to(10.0, timeout_s=1.0) == pytest.approx(10.0, abs=0.005)
@@ -289,3 +293,73 @@ def test_not_connected():
         table.move_to(1.0, timeout_s=1.0)
     with pytest.raises(ValueError, match="units_per_degree"):
         GrblTurntable("/dev/null", units_per_degree=0)
+
+
+def test_move_that_does_not_finish_in_time_is_retryable(emu_factory):
+    emu = emu_factory()
+    table = table_for(emu, feed_deg_per_s=90.0)
+    table.connect()
+    try:
+        t = time.monotonic()
+        with pytest.raises(HardwareError) as err:
+            table.move_to(60.0, timeout_s=0.3)       # needs 0.67 s
+        assert 0.3 <= time.monotonic() - t < 0.8
+        assert err.value.retryable and "did not finish within 0.3 s" in str(err.value)
+        assert table.move_to(60.0, timeout_s=3.0) == pytest.approx(60.0, abs=0.005)   # the retry
+    finally:
+        table.close()
+
+
+def test_emulator_speaks_grbl(emu_factory):
+    import serial
+
+    emu = emu_factory()
+    with serial.Serial(emu.port, 115200, timeout=0.05) as ser:
+        buf = bytearray()
+
+        def lines_until(pred, timeout=1.0):
+            got, end = [], time.monotonic() + timeout
+            while time.monotonic() < end:
+                buf.extend(ser.read(256))
+                while b"\n" in buf:
+                    line, _, rest = bytes(buf).partition(b"\n")
+                    buf[:] = rest
+                    if line.strip():
+                        got.append(line.strip().decode())
+                        if pred(got[-1]):
+                            return got
+            raise AssertionError(f"timed out; got {got}")
+
+        def ask(line):
+            ser.write(line.encode() + b"\n")
+            return lines_until(lambda s: s == "ok" or s.startswith("error:"))
+
+        def status():
+            ser.write(b"?")
+            return parse_status(lines_until(lambda s: s.startswith("<"))[-1])
+
+        assert "Grbl 1.1h ['$' for help]" in lines_until(lambda s: s.startswith("Grbl"))
+        assert ask("G1 X1") == ["error:22"]                  # no feed rate yet
+        assert ask("G2 X1 Y1 I1") == ["error:20"]            # arcs unsupported here
+        assert ask("$Q") == ["error:3"] and ask("X1Q2") == ["error:20"] and ask("1") == ["error:1"]
+        assert ask("G91 G0 X10 (comment)") == ["ok"]
+        time.sleep(0.1)
+        assert status().mpos[0] == pytest.approx(10.0)
+        assert ask("G92 X0") == ["ok"]
+        st = status()
+        assert st.wco[0] == pytest.approx(10.0) and st.state == "Idle"   # WCO right after a change
+        assert ask("G90 G1 X20 F1200") == ["ok"]            # 20 units/s: 1 s
+        time.sleep(0.1)
+        assert status().state == "Run"
+        ser.write(b"!")
+        time.sleep(0.1)
+        st = status()
+        assert (st.state, st.substate) == ("Hold", 0)
+        ser.write(b"~")
+        time.sleep(0.05)
+        assert status().state == "Run"
+        ser.write(b"\x18")                                   # reset in motion: ALARM:3
+        got = lines_until(lambda s: "unlock" in s)
+        assert got[0] == "ALARM:3" and any(s.startswith("Grbl") for s in got)
+        assert ask("G0 X0") == ["error:9"] and status().state == "Alarm"
+        assert ask("$X") == ["[MSG:Caution: Unlocked]", "ok"] and status().state == "Idle"

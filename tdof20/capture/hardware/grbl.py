@@ -376,7 +376,9 @@ class GrblTurntable(Turntable):
         self._command(line, deadline=deadline)
         off_target_since: float | None = None
         while True:
-            st = self._query_status(deadline, what=f"a status report while moving to {angle_deg:g} deg")
+            # the last report may be asked for at the deadline: give it a moment to come back
+            grace = time.monotonic() + min(0.5, self.timeout_s)
+            st = self._query_status(max(deadline, grace), what=f"a status report while moving to {angle_deg:g} deg")
             pos = self._work_units(st)
             now = time.monotonic()
             if st.state == "Idle":

@@ -51,6 +51,8 @@ import math
 import os
 import re
 import select
+import struct
+import termios
 import threading
 import time
 import tty
@@ -155,6 +157,13 @@ class GrblEmulator:
         os.close(slave)                   # the host's open is detected as the end of the hang-up
         fl = fcntl.fcntl(master, fcntl.F_GETFL)
         fcntl.fcntl(master, fcntl.F_SETFL, fl | os.O_NONBLOCK)
+        self._packet = False
+        if hasattr(termios, "TIOCPKT"):     # packet mode: see the input flush pyserial does on open
+            try:
+                fcntl.ioctl(master, termios.TIOCPKT, struct.pack("i", 1))
+                self._packet = True
+            except OSError:
+                pass
         self._master = master
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"grbl-emulator {self._port}", daemon=True)
@@ -276,9 +285,11 @@ class GrblEmulator:
     # ------------------------------------------------------------------ I/O thread
 
     def _run(self) -> None:
+        """Serve the pty. The host opening the port (the hang-up ends, or pyserial's input flush on
+        open, seen in packet mode) resets the emulated board like an Arduino's DTR line."""
         fd = self._master
         poller = select.poll()
-        poller.register(fd, select.POLLIN | select.POLLHUP | select.POLLERR)
+        poller.register(fd, select.POLLIN | select.POLLPRI | select.POLLHUP | select.POLLERR)
         while not self._stop.is_set():
             try:
                 events = poller.poll(5)
@@ -288,9 +299,16 @@ class GrblEmulator:
                 return
             hup = any(ev & (select.POLLHUP | select.POLLERR) for _, ev in events)
             data = b""
-            if any(ev & select.POLLIN for _, ev in events):
+            opened = False
+            if any(ev & (select.POLLIN | select.POLLPRI) for _, ev in events):
                 try:
-                    data = os.read(fd, 4096)
+                    packet = os.read(fd, 4097)
+                    if not self._packet:
+                        data = packet
+                    elif packet[:1] == b"\x00":
+                        data = packet[1:]
+                    elif packet and packet[0] & getattr(termios, "TIOCPKT_FLUSHREAD", 1):
+                        opened = True             # pyserial flushes the input when it opens the port
                 except BlockingIOError:
                     pass
                 except OSError:
@@ -298,12 +316,11 @@ class GrblEmulator:
             with self._lock:
                 now = time.monotonic()
                 if hup and not data:
-                    if self._host_open:
-                        self._host_open = False
+                    self._host_open = False
                     self._tick(now)
                     time.sleep(0.01)
                     continue
-                if not self._host_open:
+                if not self._host_open or opened:
                     self._host_open = True
                     self._power_on(now)
                 self._tick(now)
@@ -389,10 +406,8 @@ class GrblEmulator:
             if b == 0x21:                           # !
                 self._feed_hold()
                 continue
-            if b == 0x7E:                           # ~
-                if self._hold == "held" and self._moving():
-                    self._hold = None
-                elif self._hold == "held":
+            if b == 0x7E:                           # ~ cycle start: resume after a completed hold
+                if self._hold == "held":
                     self._hold = None
                 continue
             if b >= 0x80:
