@@ -1,0 +1,116 @@
+"""Reconstruction: fuse the opaque frames into one scene, remove the table, split the objects.
+
+Input: the opaque-phase depth of every frame and its pose ``T_ref_frame`` (camera of the frame
+-> camera of arm 0, step 0, from registration). Output: the fused scene (a TSDF volume integrated
+with open3d, extracted as a point cloud and a mesh) in the reference frame, the table plane, and
+one point cluster per object standing on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tdof20.geometry import PinholeCamera, invert, transform_points
+from tdof20.o3d import o3d
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    voxel_mm: float = 2.0             # TSDF voxel
+    sdf_trunc_mm: float = 8.0
+    depth_max_mm: float = 1200.0      # ignore the far room
+    plane_dist_mm: float = 3.0        # RANSAC inlier distance of the table plane
+    above_table_mm: float = 4.0       # points closer to the table than this belong to it
+    crop_radius_mm: float = 240.0     # keep points within this distance of the turntable axis
+    cluster_eps_mm: float = 8.0       # DBSCAN neighbourhood
+    cluster_min_points: int = 60
+    min_weight: float = 2.0           # a surface voxel must be seen by this many frames
+    block_count: int = 40000          # hash-map capacity of the TSDF grid
+    min_cluster_points: int = 300     # smaller clusters are noise
+
+
+@dataclass
+class Reconstruction:
+    points: np.ndarray                # (N,3) fused scene surface points, reference frame, mm
+    plane: np.ndarray                 # (4,) table plane a x + b y + c z + d = 0, normal towards the objects
+    clusters: list[np.ndarray] = field(default_factory=list)  # (Ni,3) object points, largest first
+    mesh: object = None               # open3d TriangleMesh of the fused scene
+
+
+def fuse(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera,
+         cfg: ReconstructionConfig = ReconstructionConfig()):
+    """TSDF-integrate (depth_mm (H,W), T_ref_frame (4,4)) pairs -> open3d VoxelBlockGrid (metres).
+
+    The tensor VoxelBlockGrid is used: the legacy ScalableTSDFVolume of open3d 0.20 extracts
+    nothing here. The grid carries a dummy colour channel because its extraction needs one."""
+    import open3d.core as o3c
+
+    vbg = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+        attr_channels=((1), (1), (3)), voxel_size=cfg.voxel_mm / 1000.0, block_resolution=16,
+        block_count=cfg.block_count, device=o3c.Device("CPU:0"))
+    K = o3c.Tensor(camera.K, o3c.float64)
+    grey = o3d.t.geometry.Image(o3c.Tensor(np.full((camera.height, camera.width, 3), 0.5, np.float32)))
+    trunc_voxels = cfg.sdf_trunc_mm / cfg.voxel_mm
+    for depth_mm, T_ref_frame in frames:
+        d = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth_mm, np.float32) / 1000.0))
+        T = np.asarray(T_ref_frame, float).copy()
+        T[:3, 3] /= 1000.0
+        ext = o3c.Tensor(invert(T))  # open3d wants the world -> camera extrinsic
+        coords = vbg.compute_unique_block_coordinates(d, K, ext, 1.0, cfg.depth_max_mm / 1000.0, trunc_voxels)
+        vbg.integrate(coords, d, grey, K, K, ext, 1.0, cfg.depth_max_mm / 1000.0, trunc_voxels)
+    return vbg
+
+
+def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera, axis_point: np.ndarray,
+                axis_dir: np.ndarray, cfg: ReconstructionConfig = ReconstructionConfig()) -> Reconstruction:
+    """Fuse the frames, find the turntable top, keep what stands on it, cluster it.
+
+    ``axis_point``, ``axis_dir``: the turntable axis in the reference frame (registration finds
+    it). The fused points are first cropped to a cylinder around the axis; the table top is then
+    the top-most plane perpendicular to the axis (planes are peeled off by RANSAC one by one: the
+    bench under the turntable is a larger parallel plane, and must not be taken for it)."""
+    vol = fuse(frames, camera, cfg)
+    pts = vol.extract_point_cloud(weight_threshold=cfg.min_weight).point.positions.numpy().astype(np.float64) * 1000.0
+    mesh = vol.extract_triangle_mesh(weight_threshold=cfg.min_weight).to_legacy()
+    mesh.scale(1000.0, center=(0, 0, 0))
+    a = np.asarray(axis_dir, float) / np.linalg.norm(axis_dir)
+    p0 = np.asarray(axis_point, float)
+    if a @ (np.zeros(3) - p0) < 0:  # "up": from the table towards the reference camera
+        a = -a
+    rel = pts - p0
+    radial = np.linalg.norm(rel - np.outer(rel @ a, a), axis=1)
+    cyl = pts[radial < cfg.crop_radius_mm]
+    plane = None
+    rest = cyl
+    for _ in range(4):
+        if len(rest) < 100:
+            break
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
+        cand, inl = cloud.segment_plane(cfg.plane_dist_mm, 3, 1000)
+        cand = np.asarray(cand, float)
+        cand /= np.linalg.norm(cand[:3])
+        if cand[:3] @ a < 0:
+            cand = -cand
+        if cand[:3] @ a > 0.98 and len(inl) > 0.02 * len(cyl):
+            height = -(cand[3] + cand[:3] @ p0)  # offset of the plane along the axis from p0
+            if plane is None or height > plane[1]:
+                plane = (cand, height)
+        rest = np.delete(rest, inl, axis=0)
+    if plane is None:
+        return Reconstruction(pts, np.r_[a, -a @ p0], [], mesh)
+    plane = plane[0]
+    dist = cyl @ plane[:3] + plane[3]
+    cand = cyl[dist > cfg.above_table_mm]
+    clusters = []
+    if len(cand):
+        c = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cand))
+        labels = np.asarray(c.cluster_dbscan(cfg.cluster_eps_mm, cfg.cluster_min_points))
+        for lab in range(labels.max() + 1 if len(labels) else 0):
+            sel = cand[labels == lab]
+            if len(sel) >= cfg.min_cluster_points:
+                clusters.append(sel)
+        clusters.sort(key=len, reverse=True)
+    return Reconstruction(pts, plane, clusters, mesh)
