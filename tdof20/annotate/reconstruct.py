@@ -69,9 +69,9 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     """Fuse the frames, find the turntable top, keep what stands on it, cluster it.
 
     ``axis_point``, ``axis_dir``: the turntable axis in the reference frame (registration finds
-    it). The fused points are first cropped to a cylinder around the axis; the table top is then
-    the top-most plane perpendicular to the axis (planes are peeled off by RANSAC one by one: the
-    bench under the turntable is a larger parallel plane, and must not be taken for it)."""
+    it). The fused points are first cropped to a cylinder around the axis (the bench around the
+    turntable, a larger parallel plane, falls outside it); the table top is then the largest plane
+    perpendicular to the axis (planes are peeled off by RANSAC one by one)."""
     vol = fuse(frames, camera, cfg)
     pts = vol.extract_point_cloud(weight_threshold=cfg.min_weight).point.positions.numpy().astype(np.float64) * 1000.0
     mesh = vol.extract_triangle_mesh(weight_threshold=cfg.min_weight).to_legacy()
@@ -94,10 +94,8 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
         cand /= np.linalg.norm(cand[:3])
         if cand[:3] @ a < 0:
             cand = -cand
-        if cand[:3] @ a > 0.98 and len(inl) > 0.02 * len(cyl):
-            height = -(cand[3] + cand[:3] @ p0)  # offset of the plane along the axis from p0
-            if plane is None or height > plane[1]:
-                plane = (cand, height)
+        if cand[:3] @ a > 0.995 and (plane is None or len(inl) > plane[1]):
+            plane = (cand, len(inl))
         rest = np.delete(rest, inl, axis=0)
     if plane is None:
         return Reconstruction(pts, np.r_[a, -a @ p0], [], mesh)
