@@ -1,0 +1,343 @@
+"""Pose-estimation results in the BOP CSV format: a strict reader and an atomic writer.
+
+The format (bop_toolkit ``docs/bop_challenge_*``; one row per estimated pose)::
+
+    scene_id,im_id,obj_id,score,R,t,time
+    8,0,3,0.97,0.0621 -0.9961 0.0623 -0.6612 0.0059 0.7502 -0.7476 -0.0879 -0.6583,-12.3 40.5 731.0,0.034
+
+``R`` is 9 numbers row-major, ``t`` 3 numbers in millimetres (both space-separated), ``score`` a
+confidence (the highest-scored estimate of an object in an image counts), ``time`` the seconds
+spent on the whole image (the same on every row of an image; -1 = not measured).
+
+Reading is strict: every problem is a :class:`TdofError` naming the file and the line
+(line 1 is the header). What is an error and what only a warning:
+
+* header not exactly ``scene_id,im_id,obj_id,score,R,t,time``                  -> error
+* a row without 7 comma-separated fields, R without 9 or t without 3 numbers   -> error
+* a number that does not parse, NaN or inf anywhere, negative ids, obj_id 0    -> error
+* R not a rotation: max |R R^T - I| > 1e-3 (ROTATION_TOLERANCE) or det(R) <= 0  -> error
+* the same (scene, image, object, R, t) on two rows (a duplicate)              -> error
+* rows of one image with different times (bop_toolkit refuses them too)        -> error
+* time -1 (BOP: not measured)                                                   -> warning
+* another negative time                                                          -> error
+* blank lines                                                                     skipped
+Checks against a dataset (:func:`check_against_dataset`): unknown scene, image or object ids
+are errors; translations that look like metres (the median |t| of the file 100 or more times
+smaller than the median distance of the objects in the dataset) are an error naming a line.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from tdof20.errors import TdofError
+from tdof20.formats.io import atomic_write_bytes
+
+HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+FIELDS = HEADER.split(",")
+ROTATION_TOLERANCE = 1e-3  # max |R R^T - I| accepted (rotations printed with ~4 decimals pass)
+METRES_RATIO = 100.0  # median GT distance / median |t| of a file at or above this -> metres
+
+
+@dataclass
+class Results:
+    """Parsed results: one entry per row, in file order. ``line`` is the 1-based line number of
+    each row in its file (rows given in memory count as if written after a header: 2, 3, ...)."""
+
+    scene_id: np.ndarray  # (N,) int64
+    im_id: np.ndarray  # (N,) int64
+    obj_id: np.ndarray  # (N,) int64
+    score: np.ndarray  # (N,) float64
+    R: np.ndarray  # (N,3,3)
+    t: np.ndarray  # (N,3) mm
+    time: np.ndarray  # (N,) seconds, -1 = not measured
+    line: np.ndarray  # (N,) int64
+    path: Path | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+    @property
+    def name(self) -> str:
+        """A method name for reports: the file's stem (BOP names files METHOD_DATASET-SPLIT.csv)."""
+        return self.path.stem if self.path is not None else "results"
+
+    def where(self, i: int) -> str:
+        return f"line {int(self.line[i])}"
+
+    def error(self, i: int | None, message: str) -> TdofError:
+        """A TdofError naming the file (if any) and the line of row ``i``."""
+        prefix = "" if i is None else (f"line {int(self.line[i])}: " if self.path is not None
+                                       else f"row {int(self.line[i]) - 1}: ")
+        return TdofError(prefix + message, self.path)
+
+    @classmethod
+    def from_rows(cls, rows: Iterable[Sequence], path: str | Path | None = None) -> "Results":
+        """Results from (scene_id, im_id, obj_id, score, R (3,3), t (3,) mm, time) tuples
+        (time may be None = -1), validated like a file."""
+        rows = list(rows)
+        n = len(rows)
+        sid = np.zeros(n, np.int64)
+        iid = np.zeros(n, np.int64)
+        oid = np.zeros(n, np.int64)
+        score = np.zeros(n)
+        R = np.zeros((n, 3, 3))
+        t = np.zeros((n, 3))
+        tm = np.zeros(n)
+        p = None if path is None else Path(path)
+        for i, row in enumerate(rows):
+            where = f"line {i + 2}: " if p is not None else f"row {i + 1}: "
+            if len(row) != 7:
+                raise TdofError(f"{where}expected 7 values ({HEADER}), got {len(row)}", p)
+            s, im, ob, sc, Ri, ti, ti_me = row
+            for name, v in (("scene_id", s), ("im_id", im), ("obj_id", ob)):
+                if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                    raise TdofError(f"{where}{name} must be an integer, got {v!r}", p)
+            sid[i], iid[i], oid[i] = int(s), int(im), int(ob)
+            Ra = np.asarray(Ri, dtype=np.float64)
+            ta = np.asarray(ti, dtype=np.float64)
+            if Ra.size != 9 or ta.size != 3:
+                raise TdofError(f"{where}R must have 9 numbers and t 3, got {Ra.size} and {ta.size}", p)
+            R[i] = Ra.reshape(3, 3)
+            t[i] = ta.reshape(3)
+            score[i] = float(sc)
+            tm[i] = -1.0 if ti_me is None else float(ti_me)
+        res = cls(sid, iid, oid, score, R, t, tm, np.arange(n, dtype=np.int64) + 2, p)
+        _validate(res)
+        return res
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------
+def _fail(path: Path, lineno: int, message: str) -> TdofError:
+    return TdofError(f"line {lineno}: {message}", path)
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def read_results(path: str | Path) -> Results:
+    """Read and check a BOP results CSV; any problem is a TdofError naming the file and line."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise TdofError("results file not found", path) from None
+    except (IsADirectoryError, PermissionError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        lineno = data[: e.start].count(b"\n") + 1
+        raise _fail(path, lineno, "not UTF-8 text") from None
+    lines = text.splitlines()
+    if not lines:
+        raise _fail(path, 1, f"empty file: expected the header {HEADER!r}")
+    header = ",".join(f.strip() for f in lines[0].split(","))
+    if header != HEADER:
+        hint = ""
+        if header == "scene_id,im_id,obj_id,score,R,t":
+            hint = " (the time column is missing: add ',time' and -1 where not measured)"
+        raise _fail(path, 1, f"malformed header {lines[0].strip()[:80]!r}: expected {HEADER!r}{hint}")
+    ids: list[str] = []
+    toks: list[str] = []
+    ln: list[int] = []
+    counts = (("score", 1), ("R", 9), ("t", 3), ("time", 1))
+    for k in range(1, len(lines)):
+        raw = lines[k]
+        f = raw.split(",")
+        if len(f) != 7:
+            if not raw.strip():
+                continue
+            raise _fail(path, k + 1, f"expected 7 comma-separated fields ({HEADER}), found {len(f)}")
+        parts = [f[3].split(), f[4].split(), f[5].split(), f[6].split()]
+        if len(parts[0]) != 1 or len(parts[1]) != 9 or len(parts[2]) != 3 or len(parts[3]) != 1:
+            name, n = next((nm, c) for (nm, c), p in zip(counts, parts) if len(p) != c)
+            got = len(parts[[c[0] for c in counts].index(name)])
+            raise _fail(path, k + 1, f"{name} must hold {n} space-separated number{'s' if n > 1 else ''}, found {got}")
+        ids += f[:3]
+        for p in parts:
+            toks += p
+        ln.append(k + 1)
+    n = len(ln)
+    line = np.asarray(ln, np.int64)
+    try:
+        ints = np.array([int(x) if x.strip().isdigit() and x.strip().isascii() else -1 for x in ids],
+                        dtype=np.int64).reshape(n, 3)
+    except ValueError:  # pragma: no cover - isdigit() guards int()
+        ints = np.full((n, 3), -1, np.int64)
+    if (ints < 0).any():
+        r, c = np.argwhere(ints < 0)[0]
+        raise _fail(path, int(line[r]), f"{FIELDS[c]} must be a non-negative integer, got {ids[3 * r + c].strip()!r}")
+    try:
+        nums = np.array(toks, dtype=np.float64).reshape(n, 14)
+    except ValueError:
+        for j, x in enumerate(toks):
+            if not _is_float(x):
+                r, c = divmod(j, 14)
+                name = "score" if c == 0 else "R" if c < 10 else "t" if c < 13 else "time"
+                raise _fail(path, int(line[r]), f"{name}: {x!r} is not a number") from None
+        raise
+    bad = ~np.isfinite(nums)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        name = "score" if c == 0 else "R" if c < 10 else "t" if c < 13 else "time"
+        raise _fail(path, int(line[r]), f"{name} holds NaN or inf")
+    res = Results(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(), nums[:, 0].copy(),
+                  nums[:, 1:10].reshape(n, 3, 3).copy(), nums[:, 10:13].copy(), nums[:, 13].copy(), line, path)
+    _validate(res)
+    return res
+
+
+def _first(mask: np.ndarray) -> int | None:
+    idx = np.flatnonzero(mask)
+    return int(idx[0]) if len(idx) else None
+
+
+def _validate(res: Results) -> None:
+    """Row-level checks shared by files and in-memory rows (see the module docstring)."""
+    n = len(res)
+    # numbers (rows given in memory have not been checked yet)
+    for name, arr in (("score", res.score), ("R", res.R.reshape(n, 9)), ("t", res.t), ("time", res.time)):
+        bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1) if n else np.zeros(0, bool)
+        if (i := _first(bad)) is not None:
+            raise res.error(i, f"{name} holds NaN or inf")
+    for name, arr in (("scene_id", res.scene_id), ("im_id", res.im_id)):
+        if (i := _first(arr < 0)) is not None:
+            raise res.error(i, f"{name} must be >= 0, got {arr[i]}")
+    if (i := _first(res.obj_id < 1)) is not None:
+        raise res.error(i, f"obj_id must be >= 1, got {res.obj_id[i]}")
+    # rotations
+    if n:
+        E = np.abs(np.einsum("nij,nkj->nik", res.R, res.R) - np.eye(3)).reshape(n, 9).max(axis=1)
+        det = np.linalg.det(res.R)
+        if (i := _first((E > ROTATION_TOLERANCE) | (det <= 0))) is not None:
+            raise res.error(i, f"R is not a rotation matrix (max |R R^T - I| = {E[i]:.3g}, det = {det[i]:.4g}; "
+                               f"tolerance {ROTATION_TOLERANCE:g}, det > 0)")
+    # times: -1 = not measured (warning), other negatives are errors, one time per image
+    if (i := _first((res.time < 0) & (res.time != -1))) is not None:
+        raise res.error(i, f"time must be >= 0 seconds, or -1 when not measured; got {res.time[i]:g}")
+    if n:
+        img = np.stack([res.scene_id, res.im_id], axis=1)
+        _, inv = np.unique(img, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        first = np.full(inv.max() + 1, -1, np.int64)
+        order = np.arange(n)
+        first[inv[::-1]] = order[::-1]  # first row of each image
+        ref = res.time[first[inv]]
+        if (i := _first(res.time != ref)) is not None:
+            j = first[inv[i]]
+            raise res.error(i, f"time {res.time[i]:g} differs from {res.time[j]:g} on line {res.line[j]} for scene "
+                               f"{res.scene_id[i]} image {res.im_id[i]}: BOP needs one time per image "
+                               f"(the time of the whole image on each of its rows)")
+        n_unmeasured = len(np.unique(inv[res.time == -1]))
+        if n_unmeasured:
+            res.warnings.append(f"{n_unmeasured} image(s) report no time (-1): run times will not be summarised")
+    # duplicates: the same object pose twice in one image
+    if n > 1:
+        key = np.concatenate([np.stack([res.scene_id, res.im_id, res.obj_id], 1).astype(np.float64),
+                              res.R.reshape(n, 9), res.t], axis=1)
+        key = np.ascontiguousarray(key).view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
+        _, first_idx, inv = np.unique(key, return_index=True, return_inverse=True)
+        dup = first_idx[inv.reshape(-1)] != np.arange(n)
+        if (i := _first(dup)) is not None:
+            j = first_idx[inv.reshape(-1)[i]]
+            raise res.error(i, f"duplicates line {res.line[j]} (scene {res.scene_id[i]}, image {res.im_id[i]}, "
+                               f"object {res.obj_id[i]}, same pose)")
+
+
+def check_against_dataset(res: Results, scene_ids: set[int], images_of: Callable[[int], set[int]],
+                          obj_ids: set[int], gt_distance_mm: float | None = None) -> None:
+    """Refuse ids the dataset does not have (``scene_ids``: its scenes; ``images_of(scene_id)``:
+    the image ids of a scene; ``obj_ids``: its objects) and translations that look like metres
+    (``gt_distance_mm``: the median distance of the ground-truth objects from the camera)."""
+    scenes = np.array(sorted(scene_ids), dtype=np.int64)
+    if (i := _first(~np.isin(res.scene_id, scenes))) is not None:
+        raise res.error(i, f"unknown scene_id {res.scene_id[i]} (the dataset's scenes: {_ranges(scenes)})")
+    objs = np.array(sorted(obj_ids), dtype=np.int64)
+    if (i := _first(~np.isin(res.obj_id, objs))) is not None:
+        raise res.error(i, f"unknown obj_id {res.obj_id[i]} (the dataset's objects: {_ranges(objs)})")
+    bad_rows = []
+    for s in np.unique(res.scene_id):
+        rows = np.flatnonzero(res.scene_id == s)
+        known = np.fromiter(images_of(int(s)), dtype=np.int64)
+        bad = ~np.isin(res.im_id[rows], known)
+        if bad.any():
+            bad_rows.append(int(rows[np.argmax(bad)]))
+    if bad_rows:
+        i = min(bad_rows, key=lambda r: res.line[r])
+        raise res.error(i, f"scene {res.scene_id[i]} has no image {res.im_id[i]}")
+    if gt_distance_mm and len(res):
+        norms = np.linalg.norm(res.t, axis=1)
+        med = float(np.median(norms))
+        if med * METRES_RATIO <= gt_distance_mm:
+            i = _first(norms * METRES_RATIO <= gt_distance_mm)
+            raise res.error(i, f"translations look like metres: |t| = {norms[i]:.4g} here and {med:.4g} in the median "
+                               f"over {len(res)} rows, while the dataset's objects are about {gt_distance_mm:.0f} mm "
+                               f"from the camera; t must be in millimetres")
+
+
+def _ranges(ids: np.ndarray) -> str:
+    ids = sorted(int(i) for i in ids)
+    if not ids:
+        return "none"
+    out, start, prev = [], ids[0], ids[0]
+    for i in ids[1:] + [None]:
+        if i is not None and i == prev + 1:
+            prev = i
+            continue
+        out.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if i is not None:
+            start = prev = i
+    return ", ".join(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------------
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def format_results_csv(rows: Iterable[Sequence]) -> str:
+    """The CSV text of (scene_id, im_id, obj_id, score, R (3,3), t (3,) mm, time s) rows
+    (time None -> -1); numbers at full precision."""
+    out = [HEADER]
+    for row in rows:
+        if len(row) != 7:
+            raise ValueError(f"a results row has 7 values ({HEADER}), got {len(row)}")
+        s, im, ob, sc, R, t, tm = row
+        R = np.asarray(R, dtype=np.float64).reshape(-1)
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        if R.size != 9 or t.size != 3:
+            raise ValueError(f"R must be (3,3) and t (3,), got {R.size} and {t.size} numbers")
+        if not (np.isfinite(R).all() and np.isfinite(t).all() and math.isfinite(float(sc))):
+            raise ValueError(f"scene {s} image {im} object {ob}: R, t and score must be finite")
+        tm = -1.0 if tm is None else float(tm)
+        out.append(f"{int(s)},{int(im)},{int(ob)},{_num(sc)},{' '.join(map(_num, R))},"
+                   f"{' '.join(map(_num, t))},{_num(tm)}")
+    return "\n".join(out) + "\n"
+
+
+def write_results_csv(path: str | Path, rows: Iterable[Sequence]) -> Path:
+    """Atomically write a BOP results CSV from (scene_id, im_id, obj_id, score, R (3,3),
+    t (3,) mm, time s or None) rows. Returns the path."""
+    path = Path(path)
+    atomic_write_bytes(path, format_results_csv(rows).encode())
+    return path
+
+
+__all__ = ["HEADER", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "read_results", "check_against_dataset",
+           "format_results_csv", "write_results_csv"]
