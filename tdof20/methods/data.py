@@ -1,0 +1,327 @@
+"""HFF6DoF data: model keypoints, the input depth modes, and the transform from a dataset item to
+network inputs and training targets.
+
+    kps = model_keypoints(ROOT / "models")                  # {obj_id: (9,3) mm}
+    tf = HFFTransform(kps, image_size=(240, 320), depth_mode="filled")
+    sample = tf(ShardDataset(shard)[n])                     # dict of tensors, see HFFTransform
+
+Depth modes — which depth the network sees (the geometry map) and which 3D points vote at test time:
+
+======== ================================================================ =========================
+mode     input depth                                                      protocols
+======== ================================================================ =========================
+raw      the sensor's depth as recorded, holes left at 0 (pixels without   every protocol
+         depth do not vote)
+filled   the sensor's depth with holes filled from valid neighbours        every protocol
+         (:func:`~tdof20.methods.hff6dof.fill_depth_holes`); pixels still
+         without depth do not vote
+restored the restored depth (depth of the objects' models composited       none for a submission:
+         into the scene: derived from the ground-truth poses)             an upper bound only
+======== ================================================================ =========================
+
+The paper's protocol feeds the network the real, noisy transparent depth at test time, so
+``restored`` is privileged information — use it only to measure how much the depth costs
+(docs/hff6dof.md). Training *targets* always use the restored depth: the vector of a pixel points
+from the pixel's true 3D point (restored depth) to the keypoints of its object in the ground-truth
+pose, whatever the input mode.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from tdof20.errors import TdofError
+from tdof20.methods.hff6dof import fill_depth_holes, geometry_map
+
+DEPTH_MODES = ("raw", "filled", "restored")
+#: the input depth used unless told otherwise (the result of the comparison in docs/hff6dof.md)
+DEFAULT_DEPTH_MODE = "filled"
+N_CLASSES = 21          # background + 20 objects; the class of a pixel is its obj_id
+N_KEYPOINTS = 9
+KEYPOINT_SAMPLES = 10000
+KEYPOINT_SEED = 0
+
+
+def check_depth_mode(mode: str) -> str:
+    if mode not in DEPTH_MODES:
+        raise TdofError(f"unknown depth mode '{mode}' (valid: {', '.join(DEPTH_MODES)})")
+    return mode
+
+
+# --------------------------------------------------------------------------------------------
+# keypoints
+
+
+def mesh_keypoints(vertices: np.ndarray, faces: np.ndarray, k: int = N_KEYPOINTS,
+                   n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> np.ndarray:
+    """(k,3): the centre of the model's bounding box, then k-1 farthest-point samples of
+    ``n_samples`` Monte-Carlo (area-uniform) samples of its surface. Deterministic in ``seed``."""
+    import trimesh
+
+    from tdof20.geometry import farthest_point_sampling
+
+    V = np.asarray(vertices, dtype=np.float64)
+    mesh = trimesh.Trimesh(vertices=V, faces=np.asarray(faces), process=False)
+    samples, _ = trimesh.sample.sample_surface(mesh, int(n_samples), seed=int(seed))
+    centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
+    return farthest_point_sampling(np.asarray(samples), k, first=centre)
+
+
+def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None, k: int = N_KEYPOINTS,
+                    n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
+    """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_XXXXXX.ply``,
+    read with trimesh); every object of models_info.json unless ``obj_ids`` is given."""
+    import trimesh
+
+    from tdof20.formats import read_models_info
+
+    models_dir = Path(models_dir)
+    ids = sorted(read_models_info(models_dir)) if obj_ids is None else [int(o) for o in obj_ids]
+    out = {}
+    for obj_id in ids:
+        ply = models_dir / f"obj_{obj_id:06d}.ply"
+        try:
+            mesh = trimesh.load(ply, force="mesh", process=False)
+        except (OSError, ValueError) as e:
+            raise TdofError(f"cannot read the model ({e})", ply) from None
+        if len(mesh.faces) == 0:
+            raise TdofError("the model has no faces (keypoints are sampled on the surface)", ply)
+        out[obj_id] = mesh_keypoints(mesh.vertices, mesh.faces, k, n_samples, seed)
+    return out
+
+
+def keypoint_table(keypoints: Mapping[int, np.ndarray], n_classes: int = N_CLASSES) -> torch.Tensor:
+    """(n_classes, K, 3) float32 indexed by obj_id (rows of unknown objects are NaN)."""
+    K = len(next(iter(keypoints.values())))
+    table = torch.full((n_classes, K, 3), float("nan"))
+    for obj_id, kp in keypoints.items():
+        if not 0 < int(obj_id) < n_classes:
+            raise TdofError(f"object id {obj_id} outside 1..{n_classes - 1}")
+        table[int(obj_id)] = torch.as_tensor(np.asarray(kp), dtype=torch.float32)
+    return table
+
+
+def keypoints_to_json(keypoints: Mapping[int, np.ndarray]) -> dict[str, list]:
+    return {str(k): np.asarray(v, dtype=float).round(6).tolist() for k, v in sorted(keypoints.items())}
+
+
+def keypoints_from_json(d: Mapping[str, list]) -> dict[int, np.ndarray]:
+    return {int(k): np.asarray(v, dtype=np.float64) for k, v in d.items()}
+
+
+# --------------------------------------------------------------------------------------------
+# resizing and geometry
+
+
+def scale_intrinsics(K: torch.Tensor, src_hw: Sequence[int], dst_hw: Sequence[int]) -> torch.Tensor:
+    """K (..,3,3) of an image resized from src_hw to dst_hw (pixel centres at integer coordinates,
+    the BOP convention: u' = (u + 0.5) * s - 0.5)."""
+    sy, sx = dst_hw[0] / src_hw[0], dst_hw[1] / src_hw[1]
+    K = K.clone().to(torch.float32)
+    K[..., 0, 0] *= sx
+    K[..., 0, 1] *= sx
+    K[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
+    K[..., 1, 1] *= sy
+    K[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5
+    return K
+
+
+def resize_colour(rgb: torch.Tensor, hw: Sequence[int]) -> torch.Tensor:
+    """(3,H,W) uint8 -> (3,h,w) float in [0,1]: area averaging when shrinking, bilinear otherwise."""
+    x = rgb.to(torch.float32)[None] / 255.0
+    if tuple(x.shape[2:]) != tuple(hw):
+        shrink = hw[0] <= x.shape[2] and hw[1] <= x.shape[3]
+        x = F.interpolate(x, size=tuple(hw), mode="area") if shrink else \
+            F.interpolate(x, size=tuple(hw), mode="bilinear", align_corners=False)
+    return x[0].clamp_(0.0, 1.0)
+
+
+def resize_nearest(img: torch.Tensor, hw: Sequence[int]) -> torch.Tensor:
+    """(H,W) any dtype -> (h,w), nearest neighbour at pixel centres (no mixing of depths or labels)."""
+    if tuple(img.shape) == tuple(hw):
+        return img
+    x = img[None, None].to(torch.float32)
+    return F.interpolate(x, size=tuple(hw), mode="nearest-exact")[0, 0].to(img.dtype)
+
+
+def backproject(depth_mm: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(H,W) depth in mm and K (3,3) -> (H,W,3) camera-frame points in mm (0 where depth is 0)."""
+    H, W = depth_mm.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    z = depth_mm.to(torch.float32)
+    x = (u - K[0, 2]) * z / K[0, 0]
+    y = (v - K[1, 2]) * z / K[1, 1]
+    return torch.stack([x, y, z], dim=-1)
+
+
+def input_depth(raw_mm: torch.Tensor, restored_mm: torch.Tensor | None, mode: str) -> torch.Tensor:
+    """The depth (H,W) mm the network sees and the voting uses, per depth mode."""
+    if mode == "raw":
+        return raw_mm
+    if mode == "filled":
+        return fill_depth_holes(raw_mm)
+    if mode == "restored":
+        if restored_mm is None:
+            raise TdofError("depth mode 'restored' needs the restored depth (depth_restored/)")
+        return restored_mm
+    raise TdofError(f"unknown depth mode '{mode}' (valid: {', '.join(DEPTH_MODES)})")
+
+
+# --------------------------------------------------------------------------------------------
+# the transform
+
+
+class HFFTransform:
+    """A dataset item (a :class:`~tdof20.formats.shards.ShardDataset` item or a
+    :class:`SceneImages` item) -> network inputs and targets at ``image_size`` (H, W).
+
+    Output dict:
+
+    - ``rgb`` (3,H,W) float in [0,1]; ``geo`` (6,H,W) :func:`geometry_map` of the input depth;
+    - ``depth`` (H,W) the input depth in mm (per ``depth_mode``; 0 = none); ``K`` (3,3) scaled;
+    - with ``targets`` (and labels in the item): ``seg`` (H,W) int64 obj_id per pixel (0 =
+      background); ``vec`` (3K,H,W) unit vectors from each object pixel's true 3D point (restored
+      depth) to its object's K keypoints in the ground-truth pose (0 elsewhere); ``mask`` (H,W) bool,
+      the pixels where ``vec`` is defined (visible object pixels with restored depth);
+    - ``scene_id``, ``im_id``; ``label`` (H,W) the resized ground-truth label whenever the item has one.
+    """
+
+    def __init__(self, keypoints: Mapping[int, np.ndarray] | torch.Tensor, image_size: Sequence[int],
+                 depth_mode: str = DEFAULT_DEPTH_MODE, targets: bool = True):
+        self.kp_table = keypoints if isinstance(keypoints, torch.Tensor) else keypoint_table(keypoints)
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.depth_mode = check_depth_mode(depth_mode)
+        self.targets = bool(targets)
+
+    def __call__(self, item: Mapping) -> dict:
+        hw = self.image_size
+        src_hw = tuple(item["rgb"].shape[1:])
+        K = scale_intrinsics(item["K"], src_hw, hw)
+        raw = resize_nearest(item["depth"], hw)
+        restored = resize_nearest(item["depth_restored"], hw) if item.get("depth_restored") is not None else None
+        depth = input_depth(raw, restored, self.depth_mode)
+        out = {
+            "rgb": resize_colour(item["rgb"], hw),
+            "geo": geometry_map(depth[None], K[None])[0],
+            "depth": depth,
+            "K": K,
+            "scene_id": int(item["scene_id"]), "im_id": int(item["im_id"]),
+        }
+        if "label" in item:
+            out["label"] = resize_nearest(item["label"], hw)
+        if self.targets:
+            if "label" not in item or restored is None:
+                raise TdofError("training targets need labels and the restored depth")
+            out.update(self.vector_targets(out["label"], resize_nearest(item["instance"], hw), restored, K,
+                                           item["obj_id"], item["R"], item["t"]))
+        return out
+
+    def vector_targets(self, label: torch.Tensor, instance: torch.Tensor, restored: torch.Tensor, K: torch.Tensor,
+                       obj_id: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> dict:
+        H, W = label.shape
+        nk = self.kp_table.shape[1]
+        obj = obj_id.long().clamp(0, self.kp_table.shape[0] - 1)
+        kp_cam = torch.einsum("mij,mkj->mki", R.to(torch.float32), self.kp_table[obj]) + t.to(torch.float32)[:, None]
+        mask = (instance > 0) & (label > 0) & (restored > 0)
+        inst = (instance.long() - 1).clamp_min(0)
+        P = backproject(restored, K)                                   # (H,W,3)
+        d = kp_cam[inst] - P[:, :, None]                               # (H,W,K,3)
+        vec = F.normalize(d, dim=-1, eps=1e-6)
+        ok = mask & torch.isfinite(vec).all(-1).all(-1)
+        vec = torch.where(ok[..., None, None], vec, torch.zeros_like(vec))
+        return {"seg": label.long(), "vec": vec.reshape(H, W, nk * 3).permute(2, 0, 1).contiguous(), "mask": ok}
+
+
+class TransformedDataset(torch.utils.data.Dataset):
+    """``base[n]`` passed through ``transform`` (picklable for DataLoader workers)."""
+
+    def __init__(self, base, transform):
+        self.base = base
+        self.transform = transform
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, n: int) -> dict:
+        return self.transform(self.base[n])
+
+
+class SceneImages(torch.utils.data.Dataset):
+    """Images (scene_id, im_id) read straight from a BOP dataset root (``ROOT/scenes/``), as items in
+    the layout of :class:`~tdof20.formats.shards.ShardDataset` (what :class:`HFFTransform` takes):
+    rgb, depth, depth_restored (zeros when the scene has none), K, and the labels (label, instance,
+    obj_id, R, t) when ``labels`` is set."""
+
+    def __init__(self, root: str | Path, images: Sequence[tuple[int, int]], labels: bool = False):
+        self.root = Path(root)
+        self.images = [(int(s), int(i)) for s, i in images]
+        self.labels = bool(labels)
+        self._scenes: dict = {}
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def _scene(self, sid: int):
+        from tdof20.formats import read_scene
+
+        if sid not in self._scenes:
+            self._scenes[sid] = read_scene(self.root / "scenes" / f"{sid:06d}")
+        return self._scenes[sid]
+
+    def __getitem__(self, n: int) -> dict:
+        sid, im = self.images[n]
+        sc = self._scene(sid)
+        rgb = sc.rgb(im)
+        depth = sc.depth_mm(im).astype(np.float32)
+        s = float(sc.depth_scale(im))
+        rest_path = sc.path / "depth_restored" / f"{im:06d}.png"
+        restored = sc.image("depth_restored", im).astype(np.float32) * s if rest_path.exists() \
+            else np.zeros_like(depth)
+        item = {"rgb": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))),
+                "depth": torch.from_numpy(depth), "depth_restored": torch.from_numpy(restored),
+                "K": torch.from_numpy(np.asarray(sc.K(im), dtype=np.float32)), "scene_id": sid, "im_id": im}
+        if self.labels:
+            h, w = depth.shape
+            lab = np.zeros((h, w), np.int64)
+            ins = np.zeros((h, w), np.int64)
+            gts = sc.gt[im]
+            obj = np.zeros(max(1, len(gts)), np.int64)
+            R = np.zeros((max(1, len(gts)), 3, 3), np.float32)
+            t = np.zeros((max(1, len(gts)), 3), np.float32)
+            for g, entry in enumerate(gts):
+                mv = sc.mask(im, g, visib=True)
+                lab[mv] = entry["obj_id"]
+                ins[mv] = g + 1
+                obj[g] = entry["obj_id"]
+                R[g], t[g] = sc.pose(im, g)
+            item.update(label=torch.from_numpy(lab), instance=torch.from_numpy(ins), obj_id=torch.from_numpy(obj),
+                        R=torch.from_numpy(R), t=torch.from_numpy(t))
+        return item
+
+    def __getstate__(self) -> dict:
+        d = dict(self.__dict__)
+        d["_scenes"] = {}
+        return d
+
+
+def worker_init(_worker_id: int) -> None:
+    """DataLoader worker start: one intra-op thread (the transform's tensors are small; several
+    threads per worker only fight the training process for the cores)."""
+    torch.set_num_threads(1)
+
+
+def collate(batch: list[dict]) -> dict:
+    """Stack the tensors of a list of transformed samples; ints become int64 tensors."""
+    out = {}
+    for k in batch[0]:
+        v = batch[0][k]
+        if isinstance(v, torch.Tensor):
+            out[k] = torch.stack([b[k] for b in batch])
+        else:
+            out[k] = torch.tensor([b[k] for b in batch])
+    return out

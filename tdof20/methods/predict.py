@@ -1,0 +1,414 @@
+"""Inference with a trained HFF6DoF run: poses of the test images of a split, as a BOP results CSV
+(``tdof20 predict RUN --dataset ROOT --split simple|hard --out RESULTS.csv``).
+
+Per image (paper section 3.5):
+
+1. the network at the run's image size -> segmentation logits and the keypoint vector field;
+2. objects: the classes of the segmentation's argmax that cover at least ``min_pixels`` pixels
+   (without a segmentation head: the ground-truth visible masks, see ``masks``);
+3. keypoint voting, all objects of a batch at once, in one of two ways (``voting``):
+
+   - ``bearing`` (default): *every* pixel of the object votes, with or without depth. A pixel's
+     true 3D point lies on its viewing ray r and its vector v points from that point to the
+     keypoint, so the keypoint lies in the plane through the camera centre spanned by r and v,
+     whatever the depth: RANSAC over these planes gives each keypoint's bearing (direction from
+     the camera), and PnP of the model's keypoints onto the 9 bearings gives R, t. The depth only
+     enters through the network's geometry input.
+   - ``3d`` (the paper's): the object's pixels *with depth* (the input depth of the run's depth
+     mode: ``raw`` leaves the pixels without depth out, ``filled`` uses the filled depth,
+     ``restored`` the restored one) are back-projected and vote for 3D keypoints
+     (:func:`~tdof20.methods.voting.vote_keypoints_batched`); Kabsch (least squares, weighted by
+     each keypoint's inlier count) of the model's keypoints onto them gives R, t.
+
+   On glass most sensor depth is missing or lies behind the surface, which biases ``3d`` voting;
+   the comparison is in docs/hff6dof.md;
+4. score = the mean fraction of the object's voting pixels that are inliers.
+
+The time written per image is network + voting + fitting (device-synchronised; reading and
+preparing the images is not counted), shared evenly among the images of a batch.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tdof20.errors import TdofError
+from tdof20.formats import write_json
+from tdof20.methods.data import HFFTransform, SceneImages, TransformedDataset, backproject, collate, keypoint_table, \
+    keypoints_from_json, worker_init
+from tdof20.methods.fitting import kabsch_torch
+from tdof20.methods.train import amp_dtype, load_run, select_device
+from tdof20.methods.voting import vote_keypoints_batched
+from tdof20.progress import console, progress as progress_bar
+
+MASK_SOURCES = ("auto", "network", "gt")
+VOTING = ("3d", "bearing")
+DEFAULT_VOTING = "bearing"  # the result of the depth comparison in docs/hff6dof.md
+
+
+def default_min_pixels(image_size) -> int:
+    """Smallest segment taken for an object: 0.05 % of the image, at least 10 pixels."""
+    return max(10, int(round(5e-4 * image_size[0] * image_size[1])))
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def pixel_rays(K: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """(H*W,3) unit viewing rays of the pixels of a camera K (3,3)."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=K.device),
+                          torch.arange(W, dtype=torch.float32, device=K.device), indexing="ij")
+    d = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
+    return torch.nn.functional.normalize(d.reshape(-1, 3), dim=-1)
+
+
+def vote_bearings_batched(rays: torch.Tensor, vectors: torch.Tensor, valid: torch.Tensor, n_hyp: int = 128,
+                          tol: float = 0.02, refine_iters: int = 2, min_sin: float = 1e-2,
+                          generator: torch.Generator | None = None, max_elements: int = 1 << 24
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """RANSAC voting of keypoint *bearings* (unit directions from the camera centre), depth-free.
+
+    A pixel's true 3D point lies on its viewing ray r, and its predicted vector v points from that
+    point to keypoint k, so the keypoint lies in the plane through the camera centre spanned by r
+    and v — whatever the pixel's depth. Each pixel thus constrains the keypoint's bearing b by
+    n.b = 0, n = r x v / |r x v|, and b must be a positive combination of r and v. Hypotheses:
+    b = n_i x n_j of random pairs; votes: |n.b| < ``tol`` and b between r and v; refinement: the
+    smallest eigenvector of sum n n^T over the inliers, ``refine_iters`` times.
+
+    rays (B,N,3) unit; vectors (B,N,K,3) unit; valid (B,N) bool. Returns (bearings (B,K,3),
+    n_inliers (B,K) int64); NaN bearings where no hypothesis was acceptable.
+    """
+    B, N, K, _ = vectors.shape
+    dev = rays.device
+    dtype = torch.float32
+    rays = rays.to(dtype)
+    V = torch.nn.functional.normalize(vectors.to(dtype), dim=-1, eps=1e-12).permute(0, 2, 1, 3).contiguous()
+    n = torch.cross(rays[:, None].expand_as(V), V, dim=-1)                       # (B,K,N,3)
+    norm = n.norm(dim=-1)
+    ok_n = valid[:, None] & (norm > 1e-3)
+    n = torch.where(ok_n[..., None], n / norm.clamp_min(1e-12)[..., None], torch.zeros_like(n))
+    c = (rays[:, None] * V).sum(-1)                                               # (B,K,N) r.v
+    rT = rays.transpose(1, 2)[:, None]                                            # (B,1,3,N)
+    nT, VT = n.transpose(-1, -2), V.transpose(-1, -2)                             # (B,K,3,N)
+    nv = ok_n.sum(-1)                                                             # (B,K)
+
+    def inliers(h: torch.Tensor) -> torch.Tensor:                                 # h (B,K,H,3) -> (B,K,H,N)
+        d = torch.matmul(h, nT).abs()
+        p = torch.matmul(h, rT)                                                   # b.r
+        q = torch.matmul(h, VT)                                                   # b.v
+        cc = c[:, :, None]
+        return (d < tol) & (p - q * cc > 0) & (q - p * cc > -tol) & ok_n[:, :, None]
+
+    # hypotheses from pairs of valid pixels (per keypoint: pixels whose plane is defined)
+    order = torch.argsort((~ok_n).to(torch.int8), dim=-1, stable=True)            # (B,K,N)
+    r = torch.rand((B, K, int(n_hyp), 2), generator=generator,
+                   device=generator.device if generator is not None else dev).to(dev)
+    idx = (r * nv[..., None, None].to(r.dtype)).long().clamp(max=max(N - 1, 0))
+    idx = torch.gather(order[:, :, None].expand(B, K, int(n_hyp), N), 3, idx)
+    bi = torch.arange(B, device=dev)[:, None, None]
+    ki = torch.arange(K, device=dev)[None, :, None]
+    h = torch.cross(n[bi, ki, idx[..., 0]], n[bi, ki, idx[..., 1]], dim=-1)     # (B,K,H,3)
+    hn = h.norm(dim=-1)
+    ok = (hn > min_sin) & (nv[..., None] >= 2)
+    h = h / hn.clamp_min(1e-12)[..., None]
+    mean_ray = torch.nn.functional.normalize((rays * valid[..., None]).sum(1), dim=-1)
+    h = torch.where(((h * mean_ray[:, None, None]).sum(-1) < 0)[..., None], -h, h)
+    chunk = max(1, int(max_elements) // max(1, B * K * N))
+    score = torch.cat([inliers(h[:, :, i:i + chunk]).sum(-1) for i in range(0, int(n_hyp), chunk)], dim=2)
+    score = torch.where(ok, score, torch.full_like(score, -1))
+    best = score.argmax(2)
+    b = torch.gather(h, 2, best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
+    found = torch.gather(score, 2, best[..., None])[..., 0] > 0
+    inl = inliers(b[:, :, None])[:, :, 0]
+    for _ in range(max(0, int(refine_iters))):
+        w = inl.to(dtype)
+        A = torch.einsum("bkn,bkni,bknj->bkij", w, n, n)
+        _, evecs = torch.linalg.eigh(A)
+        nb = evecs[..., 0]
+        nb = torch.where(((nb * b).sum(-1, keepdim=True) < 0), -nb, nb)
+        b = torch.where((inl.sum(-1) >= 3)[..., None] & torch.isfinite(nb).all(-1, keepdim=True), nb, b)
+        inl = inliers(b[:, :, None])[:, :, 0]
+    n_inl = inl.sum(-1)
+    b = torch.where(found[..., None], b, torch.full_like(b, float("nan")))
+    return b, torch.where(found, n_inl, torch.zeros_like(n_inl))
+
+
+def pose_from_bearings(model_kp: np.ndarray, bearings: np.ndarray, n_inliers: np.ndarray, n_points: int
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """PnP of model keypoints (K,3) mm onto keypoint bearings (K,3) (OpenCV EPnP, then
+    Levenberg-Marquardt); keypoints with few inliers (< max(3, 2 % of the points)) are left out.
+    None when fewer than 4 keypoints remain or PnP fails."""
+    import cv2
+
+    use = np.isfinite(bearings).all(1) & (bearings[:, 2] > 1e-6) & (n_inliers >= max(3, 0.02 * n_points))
+    if use.sum() < 4:
+        return None
+    obj = np.ascontiguousarray(model_kp[use], dtype=np.float64)
+    img = np.ascontiguousarray(bearings[use, :2] / bearings[use, 2:], dtype=np.float64)
+    cam = np.eye(3)
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, cam, None, flags=cv2.SOLVEPNP_EPNP)
+        if ok:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, cam, None, rvec, tvec, useExtrinsicGuess=True,
+                                          flags=cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error:
+        return None
+    if not ok or tvec[2, 0] <= 0:
+        return None
+    R, _ = cv2.Rodrigues(rvec)
+    return R, tvec[:, 0]
+
+
+def recover_poses(seg_classes: torch.Tensor, vec: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
+                  kp_table: torch.Tensor, min_pixels: int, max_points: int = 2000, n_hyp: int = 128,
+                  inlier_cos: float = 0.99, generator: torch.Generator | None = None,
+                  confidence: torch.Tensor | None = None, voting: str = DEFAULT_VOTING, bearing_tol: float = 0.02
+                  ) -> list[list[dict]]:
+    """Poses of the objects in a batch of network outputs.
+
+    seg_classes (B,H,W) int64 obj_id per pixel (0 = background); vec (B,3K,H,W) unit vectors;
+    depth (B,H,W) mm of the input depth (0 = none); K (B,3,3); kp_table (n_classes,K,3) model
+    keypoints in mm; confidence (B,H,W) optional per-pixel class probability.
+    voting: '3d' — the object's pixels *with depth* are back-projected and vote for 3D keypoints
+    (:func:`~tdof20.methods.voting.vote_keypoints_batched`, inliers within ``inlier_cos``), then
+    Kabsch onto the model's keypoints; 'bearing' — *every* pixel of the object votes for the
+    keypoints' bearings (:func:`vote_bearings_batched`, depth-free), then PnP.
+    Returns per image a list of {"obj_id", "R" (3,3), "t" (3,), "score", "n_points", "confidence"}
+    for every object with at least ``min_pixels`` pixels and a successful fit; score = the mean
+    fraction of the object's voting pixels that are inliers. At most ``max_points`` random pixels
+    of an object vote.
+    """
+    if voting not in VOTING:
+        raise TdofError(f"unknown voting '{voting}' (valid: {', '.join(VOTING)})")
+    B, H, W = seg_classes.shape
+    dev = vec.device
+    nk = vec.shape[1] // 3
+    points, vectors, owners = [], [], []
+    for b in range(B):
+        classes, counts = torch.unique(seg_classes[b], return_counts=True)
+        P = None
+        for c, cnt in zip(classes.tolist(), counts.tolist()):
+            if c <= 0 or c >= kp_table.shape[0] or cnt < min_pixels or not torch.isfinite(kp_table[c]).all():
+                continue
+            sel = seg_classes[b] == c
+            if voting == "3d":
+                sel = sel & (depth[b] > 0)
+            idx = sel.reshape(-1).nonzero()[:, 0]
+            if idx.numel() < 3:
+                continue
+            if idx.numel() > max_points:
+                pick = torch.randperm(idx.numel(), generator=generator, device="cpu" if generator is None
+                                      else generator.device)[:max_points].to(idx.device)
+                idx = idx[pick]
+            if P is None:
+                P = backproject(depth[b], K[b]).reshape(-1, 3) if voting == "3d" else pixel_rays(K[b], H, W)
+            points.append(P[idx])
+            vectors.append(vec[b].reshape(nk, 3, H * W)[:, :, idx].permute(2, 0, 1))
+            conf = float(confidence[b].reshape(-1)[idx].mean()) if confidence is not None else 1.0
+            owners.append((b, c, int(idx.numel()), conf))
+    results: list[list[dict]] = [[] for _ in range(B)]
+    if not owners:
+        return results
+    n = max(p.shape[0] for p in points)
+    Pp = torch.zeros(len(points), n, 3, device=dev)
+    Vp = torch.zeros(len(points), n, nk, 3, device=dev)
+    M = torch.zeros(len(points), n, dtype=torch.bool, device=dev)
+    for i, (p, v) in enumerate(zip(points, vectors)):
+        Pp[i, :p.shape[0]] = p
+        Vp[i, :p.shape[0]] = v.float()
+        M[i, :p.shape[0]] = True
+    model_kp = kp_table[torch.tensor([o[1] for o in owners], device=kp_table.device)]
+    if voting == "3d":
+        kps, n_inl = vote_keypoints_batched(Pp, Vp, M, n_hyp=n_hyp, inlier_cos=inlier_cos, generator=generator)
+        R, t = kabsch_torch(model_kp.to(dev), kps, weights=n_inl.to(kps.dtype))
+        R, t, n_inl = R.cpu().numpy(), t.cpu().numpy(), n_inl.cpu().numpy()
+    else:
+        bear, n_inl = vote_bearings_batched(Pp, Vp, M, n_hyp=n_hyp, tol=bearing_tol, generator=generator)
+        bear, n_inl, mk = bear.cpu().numpy(), n_inl.cpu().numpy(), model_kp.cpu().numpy()
+        R = np.full((len(owners), 3, 3), np.nan)
+        t = np.full((len(owners), 3), np.nan)
+        for i, o in enumerate(owners):
+            fit = pose_from_bearings(mk[i], bear[i], n_inl[i], o[2])
+            if fit is not None:
+                R[i], t[i] = fit
+    for i, (b, c, npts, conf) in enumerate(owners):
+        if not (np.isfinite(R[i]).all() and np.isfinite(t[i]).all()):
+            continue
+        results[b].append({"obj_id": int(c), "R": R[i].astype(np.float64), "t": t[i].astype(np.float64),
+                           "score": float(n_inl[i].mean() / max(1, npts)), "n_points": npts, "confidence": conf})
+    return results
+
+
+def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: str | Path, *,
+            device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str = "auto",
+            min_pixels: int | None = None, max_points: int = 2000, n_hyp: int = 128, inlier_cos: float = 0.99,
+            voting: str = DEFAULT_VOTING, amp: bool | None = None, seed: int = 0, progress: bool = True) -> Path:
+    """Estimate the poses of every test image of ``split`` with the run in ``run_dir`` and write the
+    BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its path. A summary
+    (timings, counts, options) goes to ``<out_csv stem>_info.json`` beside it.
+
+    masks: which pixels belong to which object — 'network' (the segmentation head's argmax),
+    'gt' (the dataset's visible masks: an oracle segmentation, for ablations; the only choice for a
+    run trained without the segmentation head), 'auto' = 'network' when the run has the head, else
+    'gt'. min_pixels: smallest segment taken (default 0.05 % of the image). max_points: random
+    pixels per object that vote. n_hyp, inlier_cos: RANSAC options. amp: mixed precision for the
+    network (None = on for CUDA). batch_size: images per forward pass.
+    """
+    from tdof20.benchmark.results import write_results_csv
+
+    out_csv = Path(out_csv)
+    rows, info = predict_rows(run_dir, dataset_root, split, device=device, batch_size=batch_size,
+                              num_workers=num_workers, masks=masks, min_pixels=min_pixels, max_points=max_points,
+                              n_hyp=n_hyp, inlier_cos=inlier_cos, voting=voting, amp=amp, seed=seed,
+                              progress=progress)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    write_results_csv(out_csv, rows)
+    write_json(out_csv.with_name(out_csv.stem + "_info.json"), info)
+    if progress:
+        console.print(f"{info['predictions']} poses in {info['images']} images ({split}/test, masks: "
+                      f"{info['masks']}, depth: {info['depth_mode']}); network {info['network_ms_per_image']:.1f} ms"
+                      f" + pose {info['pose_ms_per_image']:.1f} ms per image -> {out_csv}")
+    return out_csv
+
+
+def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, device: str = "auto",
+                 batch_size: int = 1, num_workers: int = 2, masks: str = "auto", min_pixels: int | None = None,
+                 max_points: int = 2000, n_hyp: int = 128, inlier_cos: float = 0.99, voting: str = DEFAULT_VOTING,
+                 amp: bool | None = None,
+                 seed: int = 0, progress: bool = True, images: list[tuple[int, int]] | None = None
+                 ) -> tuple[list[tuple], dict]:
+    """What :func:`predict` writes, without writing: (rows (scene_id, im_id, obj_id, score, R (3,3),
+    t (3,) mm, time s), summary dict). ``images`` overrides the split's test images."""
+    from tdof20.benchmark.dataset import split_images
+
+    dataset_root = Path(dataset_root)
+    if masks not in MASK_SOURCES:
+        raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
+    if voting not in VOTING:
+        raise TdofError(f"--voting must be one of {', '.join(VOTING)}, got '{voting}'")
+    if not (dataset_root / "dataset_info.json").exists():
+        raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
+    dev = select_device(device)
+    net, config = load_run(run_dir, dev)
+    if masks == "auto":
+        masks = "network" if net.has_seg_head else "gt"
+    if masks == "network" and not net.has_seg_head:
+        raise TdofError("the run has no segmentation head: use --masks gt (ground-truth masks)", run_dir)
+    use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
+    if dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        net = net.to(memory_format=torch.channels_last)
+    image_size = tuple(config["image_size"])
+    depth_mode = config["depth_mode"]
+    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
+    if min_pixels is None:
+        min_pixels = default_min_pixels(image_size)
+    if images is None:
+        images = split_images(dataset_root, split, "test")
+    if not images:
+        raise TdofError(f"the {split} split has no test images", dataset_root / "splits")
+    data = TransformedDataset(SceneImages(dataset_root, images, labels=masks == "gt"),
+                              HFFTransform(kp_table, image_size, depth_mode, targets=False))
+    loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
+                                         num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
+                                         pin_memory=dev.type == "cuda")
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    rows = []
+    t_net = t_pose = 0.0
+    n_img = n_obj = 0
+    show = bool(progress)
+    with torch.inference_mode(), progress_bar(show, unit="img") as bar:
+        task = bar.add_task(f"predict {split}/test", total=len(images))
+        for batch in loader:
+            rgb = batch["rgb"].to(dev, non_blocking=True)
+            geo = batch["geo"].to(dev, non_blocking=True)
+            if dev.type == "cuda":
+                rgb = rgb.contiguous(memory_format=torch.channels_last)
+                geo = geo.contiguous(memory_format=torch.channels_last)
+            depth = batch["depth"].to(dev, non_blocking=True)
+            K = batch["K"].to(dev)
+            label = batch["label"].to(dev) if masks == "gt" else None
+            _sync(dev)
+            t0 = time.perf_counter()
+            with torch.autocast(dev.type, dtype=amp_dtype(dev), enabled=use_amp):
+                out = net(rgb, geo)
+            vec = out["vec"].float()
+            if masks == "network":
+                prob = torch.softmax(out["seg"].float(), dim=1)
+                conf, classes = prob.max(dim=1)
+            else:
+                classes, conf = label, None
+            _sync(dev)
+            t1 = time.perf_counter()
+            res = recover_poses(classes, vec, depth, K, kp_table.to(dev), min_pixels, max_points=max_points,
+                                n_hyp=n_hyp, inlier_cos=inlier_cos, generator=gen, confidence=conf,
+                                voting=voting)
+            _sync(dev)
+            t2 = time.perf_counter()
+            B = rgb.shape[0]
+            per_image = (t2 - t0) / B
+            t_net += t1 - t0
+            t_pose += t2 - t1
+            for b in range(B):
+                sid, im = int(batch["scene_id"][b]), int(batch["im_id"][b])
+                for r in res[b]:
+                    rows.append((sid, im, r["obj_id"], r["score"], r["R"], r["t"], per_image))
+                n_obj += len(res[b])
+            n_img += B
+            bar.advance(task, B)
+    info = {"run": str(Path(run_dir).resolve()), "dataset": str(dataset_root.resolve()), "split": split,
+            "images": n_img, "predictions": n_obj, "masks": masks, "depth_mode": depth_mode,
+            "image_size": list(image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),
+            "min_pixels": int(min_pixels), "max_points": int(max_points), "n_hyp": int(n_hyp),
+            "inlier_cos": float(inlier_cos), "voting": voting,
+            "network_ms_per_image": round(1000 * t_net / max(1, n_img), 3),
+            "pose_ms_per_image": round(1000 * t_pose / max(1, n_img), 3),
+            "fps": round(n_img / max(1e-9, t_net + t_pose), 2)}
+    return rows, info
+
+
+def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, part: str = "test", *,
+                     device: str = "auto", batch_size: int = 4, num_workers: int = 0,
+                     images: list[tuple[int, int]] | None = None) -> dict:
+    """Intersection over union of the run's segmentation with the ground-truth visible labels on
+    ``split``/``part``, at the run's image size: {"mean": mean over the object classes present,
+    "per_class": {obj_id: IoU}, "pixel_accuracy": fraction of object pixels labelled right}. Pixels and
+    unions are pooled over the images."""
+    from tdof20.benchmark.dataset import split_images
+
+    dev = select_device(device)
+    net, config = load_run(run_dir, dev)
+    if not net.has_seg_head:
+        raise TdofError("the run has no segmentation head", run_dir)
+    if images is None:
+        images = split_images(dataset_root, split, part)
+    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
+    data = TransformedDataset(SceneImages(dataset_root, images, labels=True),
+                              HFFTransform(kp_table, config["image_size"], config["depth_mode"], targets=False))
+    loader = torch.utils.data.DataLoader(data, batch_size=batch_size, num_workers=num_workers, collate_fn=collate,
+                                         worker_init_fn=worker_init)
+    n = config["network"]["n_classes"]
+    inter = torch.zeros(n, dtype=torch.long)
+    union = torch.zeros(n, dtype=torch.long)
+    present = torch.zeros(n, dtype=torch.bool)
+    correct = total = 0
+    with torch.inference_mode():
+        for batch in loader:
+            pred = net(batch["rgb"].to(dev), batch["geo"].to(dev))["seg"].argmax(1).cpu()
+            lab = batch["label"]
+            inter += torch.bincount(lab[pred == lab].reshape(-1), minlength=n)[:n]
+            union += (torch.bincount(lab.reshape(-1), minlength=n)[:n] + torch.bincount(pred.reshape(-1), minlength=n)[:n])
+            present |= torch.bincount(lab.reshape(-1), minlength=n)[:n] > 0
+            obj = lab > 0
+            correct += int((pred[obj] == lab[obj]).sum())
+            total += int(obj.sum())
+    union -= inter
+    per_class = {c: float(inter[c]) / max(1, int(union[c])) for c in range(1, n) if present[c]}
+    return {"mean": float(np.mean(list(per_class.values()))) if per_class else 0.0, "per_class": per_class,
+            "pixel_accuracy": correct / max(1, total)}

@@ -1,0 +1,420 @@
+"""Training HFF6DoF on a dataset split (``tdof20 train hff6dof``).
+
+    from tdof20.methods.train import train
+    run = train("ROOT", "simple", "runs/simple", image_size=(240, 320), epochs=20)
+
+A run folder holds everything needed to resume and to predict:
+
+    RUN/config.json       network config, keypoints {obj_id: (9,3) mm}, image size, depth mode, and
+                          the training options (what predict rebuilds the network from)
+    RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
+    RUN/history.json      per-epoch losses, learning rate, images/s
+    RUN/loss.png          loss curves (total, segmentation, vector field) and learning rate
+    RUN/data/{split}_train.h5   the packed training shard (made on first use, reused afterwards)
+
+Running ``train`` again on the same RUN resumes from last.pt: the epoch and step counters, the
+optimiser's moments and the loss history continue; asking for more ``epochs`` (or a larger
+``max_steps``) extends the run. The network options must not change between calls.
+
+Several GPUs: ``torchrun --nproc_per_node N -m tdof20 train hff6dof ...`` (or any launcher that
+sets LOCAL_RANK / WORLD_SIZE): one process per GPU, DistributedDataParallel, a DistributedSampler,
+``batch_size`` per process; only rank 0 packs, prints and writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import torch
+
+from tdof20.errors import TdofError
+from tdof20.formats import read_json, write_json
+from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, N_KEYPOINTS, HFFTransform, TransformedDataset,
+                                 check_depth_mode, collate, keypoints_from_json, keypoints_to_json,
+                                 model_keypoints, worker_init)
+from tdof20.methods.hff6dof import HFF6DoF
+from tdof20.methods.losses import hff_loss
+from tdof20.progress import console, progress as progress_bar
+
+LR_SCHEDULES = ("cosine", "step")
+CHECKPOINT = "last.pt"
+CONFIG = "config.json"
+
+
+# --------------------------------------------------------------------------------------------
+# devices and processes
+
+
+def select_device(device: str = "auto") -> torch.device:
+    """'auto' -> the first CUDA GPU, else Apple MPS, else the CPU; anything else as torch reads it."""
+    if device in (None, "", "auto"):
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        mps = getattr(torch.backends, "mps", None)
+        if mps is not None and mps.is_available():
+            return torch.device("mps")
+        return torch.device("cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as e:
+        raise TdofError(f"--device: {e}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise TdofError(f"--device {device}: this torch has no CUDA device")
+    return dev
+
+
+def _distributed() -> tuple[int, int, int]:
+    """(rank, local_rank, world_size) from the launcher's environment (1 process without one)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 0, 1
+    return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
+
+
+def amp_dtype(dev: torch.device) -> torch.dtype:
+    return torch.bfloat16 if dev.type == "cuda" and torch.cuda.is_bf16_supported() else torch.float16
+
+
+def lr_factor(step: int, total: int, schedule: str, warmup: int) -> float:
+    """Learning-rate multiplier at optimiser step ``step`` of ``total``: a linear warm-up over
+    ``warmup`` steps, then 'cosine' (to 1 % at the end) or 'step' (x0.1 at 60 %, x0.01 at 85 %)."""
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    frac = min(1.0, step / max(1, total))
+    if schedule == "cosine":
+        return 0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * frac))
+    if schedule == "step":
+        return 1.0 if frac < 0.6 else (0.1 if frac < 0.85 else 0.01)
+    raise TdofError(f"unknown learning-rate schedule '{schedule}' (valid: {', '.join(LR_SCHEDULES)})")
+
+
+# --------------------------------------------------------------------------------------------
+# run folder
+
+
+def build_network(config: dict) -> HFF6DoF:
+    """The network described by a run's config.json."""
+    net = config["network"]
+    return HFF6DoF(n_classes=net["n_classes"], n_keypoints=net["n_keypoints"], fuse_stages=net["fuse_stages"],
+                   seg_head=net["seg_head"], decoder_channels=net["decoder_channels"],
+                   head_channels=net["head_channels"], geo_channels=net["geo_channels"])
+
+
+def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[HFF6DoF, dict]:
+    """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
+    run_dir = Path(run_dir)
+    if not (run_dir / CONFIG).exists() or not (run_dir / CHECKPOINT).exists():
+        raise TdofError(f"not an HFF6DoF run (needs {CONFIG} and {CHECKPOINT}; train one first)", run_dir)
+    config = read_json(run_dir / CONFIG)
+    if config.get("method") != "hff6dof":
+        raise TdofError("config.json is not an HFF6DoF run's", run_dir / CONFIG)
+    net = build_network(config)
+    ckpt = torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)
+    net.load_state_dict(ckpt["model"])
+    return net.to(device).eval(), config
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def plot_losses(history: list[dict], path: Path) -> Path:
+    """Loss curves (per step, with a moving average) and the learning rate, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    steps = np.array([h["step"] for h in history])
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
+    w = max(1, len(history) // 50)
+    for key, colour in (("loss", "black"), ("seg", "tab:blue"), ("vec", "tab:orange")):
+        y = np.array([h[key] for h in history], dtype=float)
+        ax.plot(steps, y, color=colour, alpha=0.25, lw=0.8)
+        if len(y) >= w:
+            ys = np.convolve(y, np.ones(w) / w, mode="valid")
+            ax.plot(steps[w - 1:], ys, color=colour, lw=1.6, label={"loss": "total", "seg": "segmentation (CE)",
+                                                                     "vec": "vector field (L1)"}[key])
+    ax.set_yscale("log")
+    ax.set_xlabel("optimiser step")
+    ax.set_ylabel("loss")
+    ax.grid(alpha=0.3, which="both")
+    ax2 = ax.twinx()
+    ax2.plot(steps, [h["lr"] for h in history], color="tab:green", lw=1, ls="--", label="learning rate")
+    ax2.set_ylabel("learning rate")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
+    ax.set_title("HFF6DoF training")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+def _check_same(saved: dict, new: dict, path: Path) -> None:
+    pairs = [(key, saved.get(key), new.get(key)) for key in ("network", "image_size", "depth_mode", "split")]
+    pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
+    for key, old, now in pairs:
+        if old != now:
+            raise TdofError(f"the run was started with {key} = {old}, now {now}: use another --out for "
+                            "other network or data options", path)
+
+
+def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
+               show: bool) -> Path:
+    from tdof20.benchmark.dataset import pack
+
+    if shard is not None:
+        path = Path(shard)
+        if not path.exists():
+            raise TdofError("no such shard (write one with `tdof20 dataset pack`)", path)
+        return path
+    path = out_run / "data" / f"{split}_train.h5"
+    if rank == 0 and not path.exists():
+        pack(dataset_root, split, "train", path, show_progress=show)
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# training
+
+
+def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
+          image_size: tuple[int, int] | None = (240, 320), batch_size: int = 8, epochs: int = 20,
+          lr: float = 1e-3, lr_schedule: str = "cosine", weight_decay: float = 1e-4,
+          depth_mode: str = DEFAULT_DEPTH_MODE, fuse_stages: int = 3, seg_head: bool = True,
+          device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
+          seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
+          save_every_s: float = 600.0, progress: bool = True) -> Path:
+    """Train (or resume training) HFF6DoF on the train part of ``split`` of the dataset at
+    ``dataset_root``; returns the run folder ``out_run``.
+
+    image_size: (H, W) the images are resized to (colour by area, depth and labels by nearest
+    neighbour, K scaled); None = the dataset's own size. batch_size: images per optimiser step per
+    process. epochs: passes over the training images in all (counting earlier calls on this run).
+    lr, lr_schedule ('cosine' | 'step'), weight_decay: AdamW with a short linear warm-up.
+    depth_mode: 'raw' | 'filled' | 'restored' (tdof20.methods.data; 'restored' is privileged).
+    fuse_stages (1-5), seg_head: the network's ablation options. device: 'auto' | 'cpu' | 'cuda' |
+    'cuda:N' | 'mps'. amp: mixed precision (None = on for CUDA; bf16 where supported, else fp16 with
+    loss scaling). max_steps: stop after this many optimiser steps in all (the schedule then spans
+    them). backbone_weights: a torchvision resnet34 state dict (.pth) for both encoders. shard: an
+    HDF5 file from `tdof20 dataset pack` to train on instead of packing into RUN/data/.
+    save_every_s: checkpoint at the end of an epoch when the last checkpoint is older than this many
+    seconds (0 = after every epoch), and always when the run ends (a checkpoint holds the model and
+    AdamW's two moments: about 680 MB for the default network).
+    """
+    from tdof20.formats.shards import ShardDataset
+
+    dataset_root = Path(dataset_root)
+    out_run = Path(out_run)
+    if not (dataset_root / "dataset_info.json").exists():
+        raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
+    from tdof20.benchmark.splits import SPLITS
+    if split not in SPLITS:
+        raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
+    check_depth_mode(depth_mode)
+    if lr_schedule not in LR_SCHEDULES:
+        raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
+    if batch_size < 1 or epochs < 1 or lr <= 0:
+        raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
+    if not 1 <= int(fuse_stages) <= 5:
+        raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
+
+    rank, local_rank, world = _distributed()
+    dist = None
+    if world > 1:
+        import torch.distributed as dist
+        if torch.cuda.is_available():
+            torch.cuda.set_device(local_rank)
+            dev = torch.device("cuda", local_rank)
+        else:
+            dev = torch.device("cpu")
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    else:
+        dev = select_device(device)
+    main = rank == 0
+    show = bool(progress) and main
+    use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
+    if amp and dev.type != "cuda" and show:
+        console.print("[yellow]mixed precision is for CUDA devices; training in float32")
+
+    try:
+        if main:
+            out_run.mkdir(parents=True, exist_ok=True)
+        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show)
+        if dist is not None:
+            dist.barrier()
+        data = ShardDataset(shard_path)
+        if image_size is None:
+            import h5py
+            with h5py.File(shard_path, "r") as f:
+                image_size = tuple(int(v) for v in f["rgb"].shape[1:3])
+        image_size = (int(image_size[0]), int(image_size[1]))
+        if min(image_size) < 32:
+            raise TdofError(f"--image-size {image_size[0]}x{image_size[1]} is too small (32 pixels at least)")
+
+        ckpt_path = out_run / CHECKPOINT
+        resume = ckpt_path.exists()
+        if resume:
+            saved = read_json(out_run / CONFIG)
+            keypoints = keypoints_from_json(saved["keypoints"])
+        else:
+            keypoints = model_keypoints(dataset_root / "models")
+        torch.manual_seed(seed)
+        net = HFF6DoF(n_classes=N_CLASSES, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages, seg_head=seg_head)
+        options = dict(batch_size=batch_size, epochs=epochs, lr=lr, lr_schedule=lr_schedule,
+                       weight_decay=weight_decay, amp=use_amp, num_workers=num_workers, max_steps=max_steps,
+                       seed=seed, backbone_weights=None if backbone_weights is None else str(backbone_weights),
+                       world_size=world, device=str(dev))
+        config = {"method": "hff6dof", "version": 1,
+                  "network": {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()},
+                  "image_size": list(image_size), "depth_mode": depth_mode, "split": split,
+                  "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
+                  "keypoints": keypoints_to_json(keypoints), "train": options}
+        if resume:
+            _check_same(saved, config, out_run / CONFIG)
+        elif backbone_weights is not None:
+            net.load_backbone_weights(backbone_weights)
+        if main:
+            write_json(out_run / CONFIG, config)
+
+        net = net.to(dev)
+        if dev.type == "cuda":
+            net = net.to(memory_format=torch.channels_last)
+            torch.backends.cudnn.benchmark = True
+        opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
+        scaler = torch.amp.GradScaler("cuda", enabled=use_amp and amp_dtype(dev) == torch.float16)
+        epoch, step, history, epochs_log = 0, 0, [], []
+        if resume:
+            ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+            net.load_state_dict(ckpt["model"])
+            opt.load_state_dict(ckpt["optimizer"])
+            if ckpt.get("scaler"):
+                scaler.load_state_dict(ckpt["scaler"])
+            epoch, step = int(ckpt["epoch"]), int(ckpt["step"])
+            history, epochs_log = list(ckpt["history"]), list(ckpt.get("epochs", []))
+            for g in opt.param_groups:  # the options of this call win (lr, weight decay)
+                g["weight_decay"] = weight_decay
+        model = net
+        if world > 1:
+            if dev.type == "cuda":
+                model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+            model = torch.nn.parallel.DistributedDataParallel(
+                model, device_ids=[local_rank] if dev.type == "cuda" else None)
+
+        transform = HFFTransform(keypoints, image_size, depth_mode, targets=True)
+        tdata = TransformedDataset(data, transform)
+        n = len(tdata)
+        per_rank = n // world
+        bs = min(batch_size, max(1, per_rank))
+        steps_per_epoch = max(1, per_rank // bs)
+        total = epochs * steps_per_epoch
+        if max_steps is not None:
+            total = min(total, int(max_steps))
+        warmup = min(200, total // 20)
+        sampler = torch.utils.data.DistributedSampler(tdata, num_replicas=world, rank=rank, shuffle=True,
+                                                      seed=seed, drop_last=True)
+        if main and show:
+            console.print(f"HFF6DoF on {split}/train: {n} images at {image_size[0]}x{image_size[1]}, depth "
+                          f"{depth_mode}, batch {bs} x {world} process(es), {steps_per_epoch} steps/epoch, "
+                          f"device {dev}{' (AMP ' + str(amp_dtype(dev)).split('.')[-1] + ')' if use_amp else ''}"
+                          + (f", resuming at epoch {epoch}, step {step}" if resume else ""))
+
+        last_save = [time.perf_counter()]
+
+        def save() -> None:
+            last_save[0] = time.perf_counter()
+            if not main:
+                return
+            _save_atomic({"model": net.state_dict(), "optimizer": opt.state_dict(),
+                          "scaler": scaler.state_dict() if scaler.is_enabled() else None,
+                          "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
+                          "config": config}, ckpt_path)
+            write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step})
+            if history:
+                plot_losses(history, out_run / "loss.png")
+
+        global_bs = bs * world
+        with progress_bar(show, unit="img") as bar:
+            task = bar.add_task("training", total=total * global_bs, completed=min(step, total) * global_bs)
+            while step < total:
+                sampler.set_epoch(epoch)
+                skip = step - epoch * steps_per_epoch  # steps of this epoch done before a resume
+                idx = list(sampler)[max(0, skip) * bs: steps_per_epoch * bs]
+                loader = torch.utils.data.DataLoader(
+                    tdata, batch_size=bs, sampler=idx, num_workers=num_workers, collate_fn=collate,
+                    worker_init_fn=worker_init,
+                    drop_last=True, pin_memory=dev.type == "cuda", persistent_workers=False)
+                model.train()
+                t0, n_img, sums = time.perf_counter(), 0, {"loss": 0.0, "seg": 0.0, "vec": 0.0}
+                n_steps = 0
+                for batch in loader:
+                    if step >= total:
+                        break
+                    rgb = batch["rgb"].to(dev, non_blocking=True)
+                    geo = batch["geo"].to(dev, non_blocking=True)
+                    if dev.type == "cuda":
+                        rgb = rgb.contiguous(memory_format=torch.channels_last)
+                        geo = geo.contiguous(memory_format=torch.channels_last)
+                    lr_now = lr * lr_factor(step, total, lr_schedule, warmup)
+                    for g in opt.param_groups:
+                        g["lr"] = lr_now
+                    ctx = torch.autocast(dev.type, dtype=amp_dtype(dev)) if use_amp else nullcontext()
+                    with ctx:
+                        out = model(rgb, geo)
+                    seg = out["seg"].float() if out["seg"] is not None else None
+                    loss, parts = hff_loss(seg, out["vec"].float(), batch["seg"].to(dev), batch["vec"].to(dev),
+                                           batch["mask"].to(dev), return_parts=True)
+                    opt.zero_grad(set_to_none=True)
+                    scaler.scale(loss).backward()
+                    scaler.step(opt)
+                    scaler.update()
+                    step += 1
+                    n_steps += 1
+                    n_img += rgb.shape[0] * world
+                    rec = {"step": step, "epoch": epoch, "loss": float(loss.detach()), "seg": float(parts["seg"]),
+                           "vec": float(parts["vec"]), "lr": lr_now}
+                    if not math.isfinite(rec["loss"]):
+                        raise TdofError(f"the loss became {rec['loss']} at step {step}: lower --lr "
+                                        "(the last good checkpoint is kept)", out_run)
+                    history.append(rec)
+                    for k in sums:
+                        sums[k] += rec[k]
+                    bar.update(task, advance=global_bs,
+                               description=f"epoch {epoch + 1}/{epochs} loss {rec['loss']:.3f}")
+                dt = time.perf_counter() - t0
+                if step >= (epoch + 1) * steps_per_epoch or step >= total:
+                    if n_steps:
+                        epochs_log.append({"epoch": epoch + 1, "steps": step,
+                                           **{k: v / n_steps for k, v in sums.items()},
+                                           "lr": history[-1]["lr"], "seconds": round(dt, 2),
+                                           "images_per_s": round(n_img / dt, 2) if dt > 0 else None})
+                    if step >= (epoch + 1) * steps_per_epoch:
+                        epoch += 1
+                if step >= total or time.perf_counter() - last_save[0] >= save_every_s:
+                    save()
+                if show and epochs_log:
+                    e = epochs_log[-1]
+                    console.print(f"epoch {e['epoch']}: loss {e['loss']:.4f} (seg {e['seg']:.4f}, vec {e['vec']:.4f}), "
+                                  f"{e['images_per_s']} images/s")
+        if not ckpt_path.exists():  # max_steps=0: the untrained network (a baseline)
+            save()
+        if show:
+            console.print(f"run: {out_run} (last.pt, config.json, loss.png)")
+    finally:
+        if dist is not None and dist.is_initialized():
+            dist.barrier()
+            dist.destroy_process_group()
+    return out_run

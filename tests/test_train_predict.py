@@ -1,0 +1,157 @@
+"""HFF6DoF training, resume, prediction and the train -> predict -> score round trip, on CPU.
+
+One tiny simulated dataset (module fixture): single/12 (vase) with many small frames (4 arm positions x 30
+turntable steps of 1 degree, 80x60) — its simple split has 100 train and 20 test images that are
+close to training views — and a few frames of multi/08 (the hard split's test scene). One short
+training (trained in two calls, so that the second one resumes) serves every test.
+"""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from tdof20.benchmark.dataset import build_dataset, split_images
+from tdof20.capture import run_capture, sim_config
+from tdof20.errors import TdofError
+from tdof20.methods.data import (DEPTH_MODES, HFFTransform, SceneImages, backproject, keypoint_table,
+                                 model_keypoints, scale_intrinsics)
+from tdof20.methods.predict import predict, predict_rows, recover_poses, segmentation_iou
+from tdof20.methods.train import lr_factor, train
+from tdof20.sim.truth import oracle_scene
+
+IMAGE_SIZE = (60, 80)
+TRAIN = dict(image_size=IMAGE_SIZE, batch_size=8, lr=2e-3, seed=0, num_workers=1, progress=False, device="cpu")
+EPOCHS_FIRST, EPOCHS_TOTAL = 3, 6
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    base = tmp_path_factory.mktemp("hff")
+    scenes = []
+    for sc, steps, deg, arms in (("single/12", 30, 1.0, 4), ("multi/08", 2, 45.0, 2)):
+        raw = base / "raw" / sc.replace("/", "_")
+        run_capture(sim_config(sc, steps=steps, step_deg=deg, n_arms=arms, width=80, height=60), raw, yes=True,
+                    show_progress=False)
+        scenes.append(oracle_scene(raw, base / "labels" / sc.replace("/", "_"), show_progress=False))
+    root = base / "root"
+    build_dataset(scenes, root, show_progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def runs(dataset, tmp_path_factory):
+    """An untrained run (max_steps=0) and a short training in two calls (the second resumes)."""
+    base = tmp_path_factory.mktemp("runs")
+    untrained = train(dataset, "simple", base / "untrained", max_steps=0, **TRAIN)
+    run = base / "trained"
+    train(dataset, "simple", run, epochs=EPOCHS_FIRST, **TRAIN)
+    first = torch.load(run / "last.pt", map_location="cpu", weights_only=False)
+    first = {k: first[k] for k in ("epoch", "step", "history")} | {
+        "opt_steps": {int(v["step"]) for v in first["optimizer"]["state"].values()}}
+    train(dataset, "simple", run, epochs=EPOCHS_TOTAL, **TRAIN)
+    return {"untrained": untrained, "trained": run, "first": first}
+
+
+def test_targets_round_trip_to_the_ground_truth_pose(dataset):
+    """The vector targets point from the true 3D points to the keypoints: voting on them with the
+    restored depth and fitting gives back the ground-truth pose."""
+    kps = model_keypoints(dataset / "models")
+    assert 12 in kps and all(v.shape == (9, 3) for v in kps.values())
+    kt = keypoint_table(kps)
+    data = SceneImages(dataset, split_images(dataset, "hard", "test")[:2], labels=True)
+    for mode in DEPTH_MODES:
+        s = HFFTransform(kps, IMAGE_SIZE, mode)(data[0])
+        assert s["rgb"].shape == (3, *IMAGE_SIZE) and 0 <= s["rgb"].min() and s["rgb"].max() <= 1
+        assert s["geo"].shape == (6, *IMAGE_SIZE) and s["vec"].shape == (27, *IMAGE_SIZE)
+        assert s["seg"].max() <= 20 and s["mask"].any()
+        if mode == "raw":
+            assert (s["depth"][s["mask"]] == 0).any()  # glass pixels without depth stay without
+    item = data[1]
+    s = HFFTransform(kps, IMAGE_SIZE, "restored")(item)
+    res = recover_poses(s["label"][None], s["vec"][None], s["depth"][None], s["K"][None], kt, 5,
+                        generator=torch.Generator().manual_seed(0))[0]
+    assert len(res) >= 2
+    for r in res:
+        g = int((item["obj_id"] == r["obj_id"]).nonzero()[0, 0])
+        assert np.allclose(r["R"], item["R"][g].numpy(), atol=2e-3)
+        assert np.allclose(r["t"], item["t"][g].numpy(), atol=1.0)
+    # the depth-free bearing voting recovers it too
+    res = recover_poses(s["label"][None], s["vec"][None], s["depth"][None] * 0, s["K"][None], kt, 5,
+                        generator=torch.Generator().manual_seed(0), voting="bearing")[0]
+    for r in res:
+        g = int((item["obj_id"] == r["obj_id"]).nonzero()[0, 0])
+        assert np.allclose(r["t"], item["t"][g].numpy(), atol=3.0)
+    # K scales with the image; back-projection of the scaled depth stays in place
+    K = scale_intrinsics(item["K"], (60, 80), (30, 40))
+    assert float(K[0, 0]) == pytest.approx(float(item["K"][0, 0]) / 2)
+    P = backproject(torch.full((30, 40), 500.0), K)
+    assert float(P[15, 20, 0]) == pytest.approx(500 * (20 - float(K[0, 2])) / float(K[0, 0]), rel=1e-5)
+
+
+def test_lr_schedules():
+    assert lr_factor(0, 100, "cosine", 10) == pytest.approx(0.1)
+    assert lr_factor(10, 100, "cosine", 10) > lr_factor(50, 100, "cosine", 10) > lr_factor(99, 100, "cosine", 10)
+    assert lr_factor(99, 100, "cosine", 0) == pytest.approx(0.01, abs=0.01)
+    assert lr_factor(50, 100, "step", 0) == 1.0 and lr_factor(70, 100, "step", 0) == pytest.approx(0.1)
+    with pytest.raises(TdofError):
+        lr_factor(0, 10, "linear", 0)
+
+
+def test_resume_continues_the_run(runs, dataset):
+    run = runs["trained"]
+    first = runs["first"]
+    ckpt = torch.load(run / "last.pt", map_location="cpu", weights_only=False)
+    spe = first["step"] // EPOCHS_FIRST
+    assert first["epoch"] == EPOCHS_FIRST and ckpt["epoch"] == EPOCHS_TOTAL
+    assert ckpt["step"] == EPOCHS_TOTAL * spe and len(ckpt["history"]) == ckpt["step"]
+    assert ckpt["history"][:first["step"]] == first["history"]  # the first call's steps are kept, not redone
+    assert first["opt_steps"] == {first["step"]}
+    assert {int(v["step"]) for v in ckpt["optimizer"]["state"].values()} == {ckpt["step"]}  # AdamW state went on
+    assert (run / "loss.png").stat().st_size > 1000 and (run / "config.json").exists()
+    # another network on the same run folder is refused
+    with pytest.raises(TdofError, match="network"):
+        train(dataset, "simple", run, epochs=EPOCHS_TOTAL, fuse_stages=2, **TRAIN)
+
+
+def test_short_training_learns(runs, dataset):
+    """Segmentation IoU and ADD(S) end clearly above an untrained network's."""
+    from tdof20.benchmark.scoring import score
+
+    iou = {k: segmentation_iou(runs[k], dataset, "simple", device="cpu")["mean"] for k in ("untrained", "trained")}
+    acc = {}
+    for k in ("untrained", "trained"):
+        rows, info = predict_rows(runs[k], dataset, "simple", device="cpu", num_workers=0, progress=False)
+        assert info["images"] == len(split_images(dataset, "simple", "test"))
+        acc[k] = score(rows, dataset, split="simple")["mean"]
+    print("seg IoU", iou, "ADD(S)", {k: v["add_s"] for k, v in acc.items()},
+          "AUC", {k: v["auc_add_s"] for k, v in acc.items()})
+    assert iou["trained"] > 0.5 and iou["trained"] > iou["untrained"] + 0.3
+    assert acc["trained"]["add_s"] >= acc["untrained"]["add_s"] + 0.3
+    assert acc["trained"]["auc_add_s"] >= acc["untrained"]["auc_add_s"] + 0.3
+
+
+def test_train_predict_score_round_trip(runs, dataset, tmp_path):
+    from tdof20.benchmark.results import read_results
+    from tdof20.benchmark.scoring import score
+
+    for split in ("simple", "hard"):
+        out = predict(runs["trained"], dataset, split, tmp_path / f"hff6dof_{split}.csv", device="cpu",
+                      batch_size=2, num_workers=0, progress=False)
+        with open(out) as f:
+            rows = list(csv.reader(f))
+        assert rows[0] == ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+        res = read_results(out)
+        assert len(res) == len(rows) - 1
+        images = set(split_images(dataset, split, "test"))
+        assert {(int(s), int(i)) for s, i in zip(res.scene_id, res.im_id)} <= images
+        assert (res.time > 0).all()
+        s = score(out, dataset, split=split)
+        assert set(s) >= {"objects", "mean", "all"} and 0.0 <= s["all"]["add_s"] <= 1.0
+        info = (tmp_path / f"hff6dof_{split}_info.json").read_text()
+        assert "network_ms_per_image" in info
+    with pytest.raises(TdofError, match="not an HFF6DoF run"):
+        predict(tmp_path, dataset, "simple", tmp_path / "x.csv", progress=False)
