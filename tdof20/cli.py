@@ -19,10 +19,14 @@ objects_app = typer.Typer(no_args_is_help=True, help="The 20-object catalog: lis
 sim_app = typer.Typer(no_args_is_help=True, help="The simulated rig: scenes, frames, contact sheets.")
 capture_app = typer.Typer(no_args_is_help=True, help="Capture sessions on the rig or the simulator: plan, run, verify.")
 dataset_app = typer.Typer(no_args_is_help=True, help="Assemble annotated scenes into the TDoF20 dataset and its splits.")
+train_app = typer.Typer(no_args_is_help=True, help="Train a method on a dataset split (checkpoints, resume, loss curves).")
+benchmark_app = typer.Typer(no_args_is_help=True, help="Score results (ADD, ADD-S, 2D projection) and profile methods.")
+app.add_typer(benchmark_app, name="benchmark")
 app.add_typer(capture_app, name="capture")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(objects_app, name="objects")
 app.add_typer(sim_app, name="sim")
+app.add_typer(train_app, name="train")
 
 out_console = console.__class__()  # stdout, for tables
 
@@ -303,22 +307,121 @@ def _print_stats(s: dict) -> None:
     out_console.print(t)
 
 
+# ----------------------------------------------------------------------------------- train / predict
+def _image_size(text: Optional[str]) -> Optional[tuple[int, int]]:
+    """'240x320' (height x width) or 'native' -> (240, 320) or None."""
+    if text is None or text.strip().lower() in ("native", "full", "none"):
+        return None
+    try:
+        h, w = (int(v) for v in text.lower().replace(",", "x").split("x"))
+    except ValueError:
+        raise TdofError(f"--image-size must look like 240x320 (height x width) or 'native', got '{text}'") from None
+    return h, w
+
+
+@train_app.command("hff6dof")
+def train_hff6dof(dataset: Path = typer.Option(..., "--dataset", help="dataset root (tdof20 dataset build)"),
+                  split: str = typer.Option(..., "--split", help="simple or hard"),
+                  out: Path = typer.Option(..., "--out", help="run folder (created; an existing run resumes)"),
+                  image_size: str = typer.Option("240x320", help="HxW the images are resized to, or 'native'"),
+                  batch_size: int = typer.Option(8, help="images per optimiser step (per process)"),
+                  epochs: int = typer.Option(20, help="passes over the training images, in all"),
+                  lr: float = typer.Option(1e-3, help="peak learning rate (AdamW)"),
+                  lr_schedule: str = typer.Option("cosine", help="cosine or step"),
+                  depth_mode: str = typer.Option("filled", help="input depth: raw, filled or restored (privileged)"),
+                  fuse_stages: int = typer.Option(3, help="encoder stages fused (1-5; the paper's ablation)"),
+                  seg_head: bool = typer.Option(True, "--seg-head/--no-seg-head", help="the segmentation head"),
+                  device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
+                  amp: Optional[bool] = typer.Option(None, "--amp/--no-amp", help="mixed precision (default: on CUDA)"),
+                  workers: int = typer.Option(2, help="data-loading worker processes"),
+                  max_steps: Optional[int] = typer.Option(None, help="stop after this many optimiser steps in all"),
+                  seed: int = SEED,
+                  backbone_weights: Optional[Path] = typer.Option(None, help="torchvision resnet34 state dict (.pth) for both encoders"),
+                  shard: Optional[Path] = typer.Option(None, help="train on this HDF5 shard (tdof20 dataset pack)"),
+                  save_every: float = typer.Option(600.0, help="checkpoint at an epoch end when the last is older (s)")) -> None:
+    """Train HFF6DoF on the train part of a split; run again on the same --out to resume or extend."""
+    from tdof20.methods.train import train
+
+    train(dataset, split, out, image_size=_image_size(image_size), batch_size=batch_size, epochs=epochs, lr=lr,
+          lr_schedule=lr_schedule, depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head, device=device,
+          amp=amp, num_workers=workers, max_steps=max_steps, seed=seed, backbone_weights=backbone_weights,
+          shard=shard, save_every_s=save_every)
+
+
+@app.command("predict")
+def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train hff6dof)"),
+                dataset: Path = typer.Option(..., "--dataset", help="dataset root"),
+                split: str = typer.Option(..., "--split", help="simple or hard"),
+                out: Path = typer.Option(..., "--out", help="results CSV to write (BOP format)"),
+                device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
+                batch_size: int = typer.Option(1, help="images per forward pass"),
+                workers: int = typer.Option(2, help="data-loading worker processes"),
+                masks: str = typer.Option("auto", help="auto, network or gt (oracle masks; not a valid submission)"),
+                voting: str = typer.Option("bearing", help="bearing (every pixel) or 3d (pixels with depth)"),
+                seed: int = SEED) -> None:
+    """Estimate the poses of a split's test images; writes the results CSV with per-image times."""
+    from tdof20.methods.predict import predict
+
+    predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, masks=masks,
+            voting=voting, seed=seed)
+
+
+# ----------------------------------------------------------------------------------- benchmark
+@benchmark_app.command("score")
+def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV files (scene_id,im_id,obj_id,score,R,t,time)"),
+                    dataset: Path = typer.Option(..., "--dataset", help="dataset root"),
+                    split: Optional[str] = typer.Option(None, "--split", help="simple or hard (its test targets)"),
+                    targets: Optional[Path] = typer.Option(None, "--targets", help="a targets JSON instead of --split"),
+                    json_out: Optional[Path] = typer.Option(None, "--json", help="write the scores as JSON here"),
+                    plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md")) -> None:
+    """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC; per object and mean."""
+    from tdof20.benchmark.scoring import score_command
+
+    out_console.print(score_command(results, dataset, split, targets, json_out, plots), highlight=False)
+
+
+@benchmark_app.command("profile")
+def benchmark_profile(method: str = typer.Argument(..., help="the method: hff6dof"),
+                      json_out: bool = typer.Option(False, "--json", help="print JSON"),
+                      device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
+                      height: int = typer.Option(480, help="input height"),
+                      width: int = typer.Option(640, help="input width"),
+                      runs: int = typer.Option(5, help="timed runs (median)"),
+                      batch_size: int = typer.Option(1, help="images per forward pass")) -> None:
+    """Parameters, multiply-adds at 480x640, latency and FPS (network and pose recovery) on this device."""
+    import json
+
+    from tdof20.methods.profile import format_profile, profile
+
+    if method != "hff6dof":
+        raise TdofError(f"unknown method '{method}' (profiled methods: hff6dof)")
+    p = profile(device=device, height=height, width=width, runs=runs, batch_size=batch_size)
+    print(json.dumps(p, indent=2) if json_out else format_profile(p))
+
+
 # ----------------------------------------------------------------------------------- demo
 @app.command("demo")
-def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything the demo writes"),
+def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything the demo writes (a rerun resumes)"),
          scenes: str = typer.Option("single/03,multi/08", help="comma-separated scene names"),
-         steps: int = typer.Option(8, help="turntable steps per arm position"),
-         step_deg: float = typer.Option(45.0, help="turntable step in degrees"),
+         steps: int = typer.Option(24, help="turntable steps per arm position"),
+         step_deg: float = typer.Option(15.0, help="turntable step in degrees"),
          arm_positions: int = typer.Option(4, help="number of arm positions"),
-         width: int = WIDTH, height: int = HEIGHT, seed: int = SEED) -> None:
-    """Run the main job end to end on the simulator: capture, labels, dataset, contact sheet."""
+         width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
+         train: bool = typer.Option(True, "--train/--no-train", help="train, predict and score HFF6DoF"),
+         image_size: str = typer.Option("96x128", help="HxW of the short training"),
+         epochs: int = typer.Option(6, help="training epochs"),
+         device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
+    """Run the main job end to end on the simulator: capture, labels, dataset, train, predict, score."""
     from tdof20.demo import run_demo
 
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:
         raise TdofError("--scenes needs at least one scene name")
+    size = _image_size(image_size)
+    if size is None:
+        raise TdofError("--image-size must be HxW for the demo")
     run_demo(out, scenes=names, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,
-             height=height, seed=seed)
+             height=height, seed=seed, train=train, image_size=size, epochs=epochs, device=device)
 
 
 def main() -> None:

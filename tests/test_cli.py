@@ -33,7 +33,7 @@ def test_help_lists_only_built_commands():
     assert res.returncode == 0
     import re
     commands = set(re.findall(r"^│ (\w+) ", res.stdout, flags=re.M))
-    assert commands == {"demo", "capture", "dataset", "objects", "sim"}
+    assert commands == {"demo", "capture", "dataset", "objects", "sim", "train", "predict", "benchmark"}
 
 
 def test_objects_list_and_export(tmp_path):
@@ -107,12 +107,51 @@ def test_sim_frames(tmp_path):
     one_line_error(run("sim", "frames", "--arm", "9", "--out", tmp_path), "--arm")
 
 
-def test_demo_runs_end_to_end(tmp_path):
-    res = run("demo", "--out", tmp_path / "demo", "--steps", "2", "--arm-positions", "2", "--width", "96",
-              "--height", "72")
+def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
+    demo = tmp_path / "demo"
+    res = run("demo", "--out", demo, "--steps", "8", "--arm-positions", "2", "--width", "96", "--height", "72",
+              "--image-size", "48x64", "--epochs", "1", "--device", "cpu")
     assert res.returncode == 0, res.stderr
-    assert (tmp_path / "demo" / "contact_sheet.png").exists()
-    assert "contact sheet" in res.stderr + res.stdout
+    for f in ("contact_sheet.png", "report.md", "runs/hff6dof_simple/loss.png", "runs/hff6dof_simple/last.pt",
+              "results/hff6dof_simple.csv", "report/scores.json", "report/accuracy_add_s.png"):
+        assert (demo / f).exists(), f
+    assert "report:" in res.stderr + res.stdout and "ADD(S)" in (demo / "report.md").read_text()
+    scores = json.loads((demo / "report/scores.json").read_text())
+    assert scores["all"]["n"] > 0 and 0.0 <= scores["mean"]["add_s"] <= 1.0
+    root, run_dir = demo / "dataset", demo / "runs/hff6dof_simple"
+    # train resumes and extends the demo's run; predict and score the other way of voting
+    res = run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir, "--image-size", "48x64",
+              "--epochs", "2", "--device", "cpu", "--workers", "0")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((run_dir / "history.json").read_text())["epochs"][-1]["epoch"] == 2
+    res = run("predict", run_dir, "--dataset", root, "--split", "simple", "--out", tmp_path / "r3d.csv",
+              "--voting", "3d", "--device", "cpu", "--workers", "0")
+    assert res.returncode == 0, res.stderr
+    res = run("benchmark", "score", tmp_path / "r3d.csv", demo / "results/hff6dof_simple.csv", "--dataset", root,
+              "--split", "simple", "--json", tmp_path / "s.json")
+    assert res.returncode == 0, res.stderr
+    assert "Table 1" in res.stdout and set(json.loads((tmp_path / "s.json").read_text())) == {"r3d", "hff6dof_simple"}
+    # mistakes are one line
+    one_line_error(run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir,
+                       "--image-size", "64x96", "--device", "cpu"), "image_size", "config.json")
+    one_line_error(run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", tmp_path / "r",
+                       "--image-size", "big"), "--image-size")
+    one_line_error(run("predict", tmp_path, "--dataset", root, "--split", "simple", "--out", tmp_path / "x.csv"),
+                   "not an HFF6DoF run")
+    one_line_error(run("predict", run_dir, "--dataset", root, "--split", "easy", "--out", tmp_path / "x.csv"), "easy")
+    one_line_error(run("benchmark", "score", tmp_path / "none.csv", "--dataset", root, "--split", "simple"), "none.csv")
+
+
+def test_benchmark_profile(tmp_path):
+    res = run("benchmark", "profile", "hff6dof", "--json", "--device", "cpu", "--height", "64", "--width", "96",
+              "--runs", "1")
+    assert res.returncode == 0, res.stderr
+    p = json.loads(res.stdout)
+    assert p["parameters"] == 56_758_992 and abs(p["macs_480x640_G"] - 84.27) < 0.01
+    assert p["network_ms"] > 0 and p["pose"]["found"] == 3 and p["pose"]["rotation_error_deg"] < 1.0
+    res = run("benchmark", "profile", "hff6dof", "--device", "cpu", "--height", "64", "--width", "96", "--runs", "1")
+    assert "multiply-adds" in res.stdout and "FPS" in res.stdout
+    one_line_error(run("benchmark", "profile", "pvnet"), "pvnet")
 
 
 def test_dataset_commands(tmp_path):

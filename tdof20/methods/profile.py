@@ -17,6 +17,7 @@ import time
 
 import torch
 
+from tdof20.errors import TdofError
 from tdof20.methods.data import N_CLASSES, N_KEYPOINTS, backproject
 from tdof20.methods.hff6dof import HFF6DoF, count_macs, count_parameters, fill_depth_holes, geometry_map
 from tdof20.methods.predict import DEFAULT_VOTING, recover_poses
@@ -127,6 +128,10 @@ def profile(device: str = "auto", height: int = 480, width: int = 640, runs: int
     net_ms, net_runs = _median_ms(forward, dev, runs, warmup)
     prep_ms, _ = _median_ms(prep, dev, runs, 1)
 
+    fit = min(height, width // max(1, objects)) ** 2
+    if fit < 16:
+        raise TdofError(f"{width}x{height} is too small to profile the pose recovery of {objects} objects")
+    pixels = min(pixels, fit)  # small inputs: the segments shrink to fit the image
     frame = synthetic_frame(height, width, objects, pixels, device=dev)
     gen = torch.Generator(device=dev).manual_seed(0)
     res_box = []
