@@ -1,0 +1,250 @@
+"""Run one function over chunks of work: in this process, on local worker processes, or on a Ray
+cluster — the small abstraction the per-frame stages share.
+
+    for result in run_chunks(fn, chunks, executor="local", workers=2):
+        ...                      # results arrive as chunks finish (completion order, not input order)
+
+- ``workers=1`` (or a single chunk): plain calls in this process, no pool.
+- ``executor="local"``: a ``concurrent.futures.ProcessPoolExecutor`` started with the
+  ``forkserver`` method (see :data:`START_METHOD`). ``fn`` is sent to each worker once, when it
+  starts; the chunks travel alone.
+- ``executor="ray"``: ``ray.init(address=ray_address)`` (None starts a local Ray instance) and one
+  Ray task per chunk; ``fn`` is put into the object store once. The folders ``fn`` reads and
+  writes must have the same path on every node (a shared file system).
+
+``fn`` must be picklable (a module-level function, or an instance of a module-level class whose
+module every worker can import). What a worker should build only once (a ray caster, an opened
+session) goes through :func:`process_cache`: one build per process, whichever executor runs it.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import socket
+from collections import OrderedDict
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Callable, Iterable, Iterator
+
+from tdof20.errors import TdofError
+from tdof20.progress import progress as _progress
+
+EXECUTORS = ("local", "ray")
+# fork would copy a parent that may already run open3d's / OpenMP's thread pools (a child can
+# then hang on a lock held by a thread that was not copied); spawn re-imports everything in every
+# worker. forkserver forks the workers from a clean server process that imported this package's
+# heavy modules once (see _PRELOAD). Measured in benchmarks/label_speed.py --start-methods.
+START_METHOD = "forkserver"
+_PRELOAD = ["tdof20.annotate.label"]
+
+
+# ---------------------------------------------------------------------------------------------
+# per-process cache
+# ---------------------------------------------------------------------------------------------
+_CACHE: "OrderedDict[Any, Any]" = OrderedDict()
+_CACHE_SIZE = 2
+
+
+def process_cache(key: Any, build: Callable[[], Any]) -> Any:
+    """``build()`` once per process and ``key`` (the last two keys kept): how a worker keeps its
+    ray caster and opened session across the chunks it runs, under any executor."""
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    value = build()
+    _CACHE[key] = value
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# local worker processes
+# ---------------------------------------------------------------------------------------------
+_WORKER_FN: Callable | None = None
+
+
+def _init_worker(fn: Callable) -> None:
+    global _WORKER_FN
+    _WORKER_FN = fn
+    # Ctrl-C reaches the whole process group: the parent alone handles it (it cancels the queued
+    # chunks and lets the running ones finish), so a worker never dies half-way through a file
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _call_worker(chunk: Any) -> Any:
+    return _WORKER_FN(chunk)
+
+
+def _context(start_method: str | None):
+    method = start_method or START_METHOD
+    if method not in multiprocessing.get_all_start_methods():
+        method = "spawn"
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload(_PRELOAD)
+    return ctx
+
+
+def _run_local(fn: Callable, chunks: list, workers: int, start_method: str | None, advance) -> Iterator:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=_context(start_method),
+                               initializer=_init_worker, initargs=(fn,))
+    try:
+        # at most 2 chunks per worker queued: an interrupted run has little in flight
+        todo = iter(enumerate(chunks))
+        running = {}
+        for i, c in todo:
+            running[pool.submit(_call_worker, c)] = i
+            if len(running) >= 2 * workers:
+                break
+        while running:
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for f in done:
+                i = running.pop(f)
+                try:
+                    result = f.result()
+                except BrokenProcessPool:
+                    raise TdofError("a local worker process died (killed, or out of memory?); "
+                                    "rerun to resume, or use fewer workers") from None
+                nxt = next(todo, None)
+                if nxt is not None:
+                    running[pool.submit(_call_worker, nxt[1])] = nxt[0]
+                advance(chunks[i])
+                yield result
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ray
+# ---------------------------------------------------------------------------------------------
+def _ray_task(fn: Callable, chunk: Any) -> Any:
+    return fn(chunk)
+
+
+def _probe(address: str, timeout: float = 5.0) -> None:
+    """Fail fast (a TdofError) when nothing listens at a 'host:port' address; ray.init itself
+    retries for a long while before it gives up."""
+    addr = address.split("://", 1)[-1]
+    host, sep, port = addr.rpartition(":")
+    if not sep or not port.isdigit():
+        return  # 'auto' and the like: let Ray resolve it
+    try:
+        socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise TdofError(f"cannot reach the Ray cluster at {address}: {e.strerror or e}") from None
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _run_ray(fn: Callable, chunks: list, workers: int | None, address: str | None, advance) -> Iterator:
+    try:
+        import ray
+    except ImportError:
+        raise TdofError("executor 'ray' needs the ray package: pip install 'ray==2.60.0'") from None
+    own = not ray.is_initialized()
+    if own:
+        where = address or "a new local instance"
+        if address:
+            _probe(address)
+        kwargs = {"log_to_driver": False}
+        if not address:
+            kwargs.update(include_dashboard=False, num_cpus=workers)
+        try:
+            ray.init(address=address, **kwargs)
+        except Exception as e:  # Ray raises ConnectionError, RuntimeError, ValueError ...
+            raise TdofError(f"cannot reach the Ray cluster at {where}: {_first_line(e)}") from None
+    running: dict = {}
+    try:
+        task = ray.remote(num_cpus=1)(_ray_task)
+        fn_ref = ray.put(fn)
+        limit = workers if workers else len(chunks)
+        todo = iter(enumerate(chunks))
+        for i, c in todo:
+            running[task.remote(fn_ref, c)] = i
+            if len(running) >= 2 * limit:
+                break
+        while running:
+            done, _ = ray.wait(list(running), num_returns=1)
+            for ref in done:
+                i = running.pop(ref)
+                try:
+                    result = ray.get(ref)
+                except ray.exceptions.RayTaskError as e:
+                    cause = e.as_instanceof_cause()
+                    if isinstance(cause, TdofError):
+                        raise TdofError(str(cause)) from None
+                    raise
+                nxt = next(todo, None)
+                if nxt is not None:
+                    running[task.remote(fn_ref, nxt[1])] = nxt[0]
+                advance(chunks[i])
+                yield result
+    finally:
+        for ref in running:
+            try:
+                ray.cancel(ref)
+            except Exception:
+                pass
+        if own:
+            ray.shutdown()
+
+
+# ---------------------------------------------------------------------------------------------
+# the entry point
+# ---------------------------------------------------------------------------------------------
+def resolve_workers(workers: int | None) -> int:
+    """None -> the cores this process may run on (os.cpu_count(), less where an affinity mask or
+    a container limits it); anything < 1 is an error."""
+    if workers is None:
+        try:
+            return max(1, len(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):
+            return os.cpu_count() or 1
+    if int(workers) < 1:
+        raise TdofError(f"workers must be >= 1, got {workers}")
+    return int(workers)
+
+
+def run_chunks(fn: Callable[[Any], Any], chunks: Iterable, executor: str = "local", workers: int | None = None,
+               ray_address: str | None = None, progress: bool = False, description: str = "chunks",
+               size: Callable[[Any], int] = lambda c: 1, unit: str = "it",
+               start_method: str | None = None) -> Iterator[Any]:
+    """Yield ``fn(chunk)`` for every chunk, as they finish (completion order).
+
+    executor: "local" (worker processes; ``workers`` None = os.cpu_count(), 1 = in this process)
+    or "ray" (``ray_address`` None starts a local Ray instance; ``workers`` then caps its CPUs
+    and the tasks in flight). ``progress``: a rich bar advanced by ``size(chunk)`` per finished
+    chunk (e.g. ``size=len`` to count frames). An exception raised by ``fn`` stops the run and is
+    raised here (the remaining chunks are cancelled); catch per-item errors inside ``fn``.
+    A Ray cluster that cannot be reached -> TdofError "cannot reach the Ray cluster at ADDR: ...".
+    """
+    if executor not in EXECUTORS:
+        raise TdofError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+    chunks = list(chunks)
+    with _progress(progress and bool(chunks), unit=unit) as bar:
+        task = bar.add_task(description, total=sum(size(c) for c in chunks))
+
+        def advance(c: Any) -> None:
+            bar.advance(task, size(c))
+
+        if executor == "ray":
+            yield from _run_ray(fn, chunks, None if workers is None else resolve_workers(workers),
+                                ray_address, advance)
+            return
+        n = min(resolve_workers(workers), len(chunks))
+        if n <= 1:
+            for c in chunks:
+                result = fn(c)
+                advance(c)
+                yield result
+            return
+        yield from _run_local(fn, chunks, n, start_method, advance)
+
+
+__all__ = ["EXECUTORS", "START_METHOD", "run_chunks", "process_cache", "resolve_workers"]
