@@ -163,7 +163,10 @@ def main() -> None:
         print(f"  {fps:.1f} frames/s   (target >= {TARGET_FPS:.0f})")
         print("  per frame in a worker: " + ", ".join(f"{k} {v:.1f} ms" for k, v in per.items())
               + f"  (wall sum {sum(v for k, v in per.items() if k != 'cpu'):.1f} ms)")
-        proj = setup + SCENE_FRAMES / fps if fps > 0 else float("inf")
+        steady = s["steady_frames_per_s"] or fps
+        start = s["first_chunk_seconds"] or 0.0
+        print(f"  first chunk back after {start:.1f} s (worker start, ray caster build), then {steady:.1f} frames/s")
+        proj = setup + start + SCENE_FRAMES / steady if steady > 0 else float("inf")
         print(f"  projected {SCENE_FRAMES} frames: {proj:.0f} s = {proj / 60:.1f} min   (target <= 5 min)")
         # the machine is shared: wall time depends on what else runs; CPU time does not
         cores = s["workers"] or 1

@@ -106,8 +106,8 @@ def _run_local(fn: Callable, chunks: list, workers: int, start_method: str | Non
                 try:
                     result = f.result()
                 except BrokenProcessPool:
-                    raise TdofError("a local worker process died (killed, or out of memory?); "
-                                    "rerun to resume, or use fewer workers") from None
+                    raise TdofError("a local worker process died (killed, out of memory, or the calling script "
+                                    "lacks `if __name__ == '__main__':`); rerun to resume, or use workers=1") from None
                 nxt = next(todo, None)
                 if nxt is not None:
                     running[pool.submit(_call_worker, nxt[1])] = nxt[0]

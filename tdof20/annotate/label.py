@@ -23,7 +23,10 @@ frames whose files or JSON entries are missing or whose poses changed. A frame w
 corrupt image is skipped and reported, never labelled; a frame the caller skips (flagged by
 registration) gets no labels, and labels left from an earlier run for it are removed.
 
-One writer per scene folder: two runs on the same folder at once are not supported.
+The stage writes neither ``models/`` nor ``scene_info.json`` (the pipeline's other stages do).
+One writer per scene folder: two runs on the same folder at once are not supported. With worker
+processes (the default), a script calling :func:`label_scene` needs the usual
+``if __name__ == "__main__":`` guard (workers start by forkserver, see executors).
 """
 
 from __future__ import annotations
@@ -41,9 +44,9 @@ import numpy as np
 
 from tdof20.annotate.executors import EXECUTORS, process_cache, resolve_workers, run_chunks
 from tdof20.errors import TdofError
-from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes, decode_png,
-                            dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene, sha256_bytes,
-                            write_png)
+from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes,
+                            decode_png, dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
+                            sha256_bytes, write_png)
 from tdof20.geometry import PinholeCamera
 
 METHODS = ("raycast", "far_to_near")
@@ -468,7 +471,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     Returns a summary: ``frames`` (planned), ``labelled``, ``already_done``, ``skipped``
     ([{im_id, arm, step, reason}]), ``removed`` (im_ids whose earlier labels were removed because
     the frame is now skipped), ``no_opaque`` (labelled im_ids without an opaque twin),
-    ``seconds``, ``run_seconds`` (the labelling, worker start included), ``frames_per_s``,
+    ``seconds``, ``run_seconds`` (the labelling, worker start included), ``frames_per_s``
+    (labelled / run_seconds), ``first_chunk_seconds`` (until the first chunk came back: worker
+    start and set-up), ``steady_frames_per_s`` (the rate after it),
     ``worker_seconds`` (wall time per part — read, render, labels, write — and ``cpu``, the
     workers' CPU time, summed over the frames), ``main_cpu_seconds`` (this process's CPU time
     while the workers ran: collecting results, writing the JSON files) and
@@ -562,6 +567,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     labelled, no_opaque, comparisons = [], [], []
     times: dict[str, float] = {}
     t_run, cpu_run = time.perf_counter(), time.process_time()
+    t_first, n_first = None, 0
     try:
         for results in run_chunks(job, chunks, executor=cfg.executor, workers=cfg.workers,
                                   ray_address=cfg.ray_address, progress=progress, description="labels",
@@ -583,9 +589,13 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                 for k, v in r["times"].items():
                     times[k] = times.get(k, 0.0) + v
             js.flush()
+            if t_first is None:
+                t_first, n_first = time.perf_counter(), len(labelled)
     finally:
         js.flush()
     t_end, cpu_main = time.perf_counter(), time.process_time() - cpu_run
+    if cfg.executor == "local" and min(resolve_workers(cfg.workers), len(chunks)) <= 1:
+        cpu_main -= times.get("cpu", 0.0)  # the frames ran in this process: count their CPU once
 
     skipped.sort(key=lambda s: s["im_id"])
     run_s = t_end - t_run
@@ -602,6 +612,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         "workers": resolve_workers(cfg.workers) if cfg.executor == "local" else cfg.workers,
         "seconds": t_end - t_start, "run_seconds": run_s,
         "frames_per_s": len(labelled) / run_s if labelled and run_s > 0 else 0.0,
+        "first_chunk_seconds": None if t_first is None else t_first - t_run,
+        "steady_frames_per_s": (len(labelled) - n_first) / (t_end - t_first)
+        if t_first is not None and len(labelled) > n_first and t_end > t_first else None,
         "worker_seconds": {k: round(v, 3) for k, v in times.items()},
         "main_cpu_seconds": round(cpu_main, 3),
         "comparison": comparison,
