@@ -116,7 +116,7 @@ def main() -> None:
     from tdof20.annotate.label import LabelConfig, label_scene
     from tdof20.capture import run_capture, sim_config
 
-    tmp = Path(tempfile.mkdtemp(prefix="label_speed_"))
+    tmp = None if args.keep else Path(tempfile.mkdtemp(prefix="label_speed_"))
     base = args.keep or tmp
     try:
         session = args.session
@@ -185,7 +185,7 @@ def main() -> None:
         print(f"  rerun (all done, nothing to do): {time.perf_counter() - t:.2f} s, "
               f"already_done {s2['already_done']}")
     finally:
-        if args.keep is None:
+        if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
 
 

@@ -609,7 +609,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     return {
         "frames": n_arms * steps, "labelled": len(labelled), "already_done": len(done), "skipped": skipped,
         "removed": removed, "no_opaque": sorted(no_opaque), "method": cfg.method, "executor": cfg.executor,
-        "workers": resolve_workers(cfg.workers) if cfg.executor == "local" else cfg.workers,
+        "workers": min(resolve_workers(cfg.workers), max(len(chunks), 1)) if cfg.executor == "local" else cfg.workers,
         "seconds": t_end - t_start, "run_seconds": run_s,
         "frames_per_s": len(labelled) / run_s if labelled and run_s > 0 else 0.0,
         "first_chunk_seconds": None if t_first is None else t_first - t_run,
