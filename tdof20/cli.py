@@ -19,8 +19,24 @@ objects_app = typer.Typer(no_args_is_help=True, help="The 20-object catalog: lis
 sim_app = typer.Typer(no_args_is_help=True, help="The simulated rig: scenes, frames, contact sheets.")
 capture_app = typer.Typer(no_args_is_help=True, help="Capture sessions on the rig or the simulator: plan, run, verify.")
 dataset_app = typer.Typer(no_args_is_help=True, help="Assemble annotated scenes into the TDoF20 dataset and its splits.")
+
+
+class _AnnotateGroup(typer.core.TyperGroup):
+    """``tdof20 annotate RAW --out SCENE`` runs the pipeline (the hidden subcommand ``run``);
+    ``tdof20 annotate evaluate ...`` is a subcommand."""
+
+    def parse_args(self, ctx, args):
+        if args and args[0] not in self.commands and not args[0].startswith("-"):
+            args = ["run", *args]
+        return super().parse_args(ctx, args)
+
+
+annotate_app = typer.Typer(cls=_AnnotateGroup, no_args_is_help=True,
+                           help="Annotate a raw session: RAW_DIR --out SCENE_DIR (register, reconstruct, model, "
+                                "place, label, qa); evaluate labels against the simulator's truth.")
 train_app = typer.Typer(no_args_is_help=True, help="Train a method on a dataset split (checkpoints, resume, loss curves).")
 benchmark_app = typer.Typer(no_args_is_help=True, help="Score results (ADD, ADD-S, 2D projection) and profile methods.")
+app.add_typer(annotate_app, name="annotate")
 app.add_typer(benchmark_app, name="benchmark")
 app.add_typer(capture_app, name="capture")
 app.add_typer(dataset_app, name="dataset")
@@ -305,6 +321,39 @@ def _print_stats(s: dict) -> None:
     for oid, n in s["per_object"].items():
         t.add_row(str(oid), get_object(int(oid)).name, str(n))
     out_console.print(t)
+
+
+# ----------------------------------------------------------------------------------- annotate
+@annotate_app.command("run", hidden=True)
+def annotate_run(raw: Path = typer.Argument(..., help="raw session folder (tdof20 capture)"),
+                 out: Path = typer.Option(..., "--out", help="the annotated scene folder (created; a rerun resumes)"),
+                 models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder in mm (CAD models, or "
+                                                       "the models the single-object scenes got)"),
+                 stages: Optional[str] = typer.Option(None, "--stages", help="e.g. register..model or label,qa "
+                                                      "(default: all: register, reconstruct, model, place, label, qa)"),
+                 config: Optional[Path] = typer.Option(None, "--config", help="TOML options (docs/annotate.md)"),
+                 executor: Optional[str] = typer.Option(None, "--executor", help="local (worker processes) or ray"),
+                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster, e.g. 10.0.0.5:6379"),
+                 workers: Optional[int] = typer.Option(None, "--workers", help="label worker processes (default: cores)"),
+                 force: bool = typer.Option(False, "--force", help="rerun the chosen stages even when up to date")) -> None:
+    """Annotate RAW into a labelled BOP scene in --out: poses, masks, restored depth, QA report."""
+    from tdof20.annotate.pipeline import AnnotateConfig, annotate, load_annotate_config, summary_text
+
+    cfg = load_annotate_config(config) if config is not None else AnnotateConfig()
+    cfg = cfg.with_label_options(executor=executor, ray_address=ray_address, workers=workers)
+    summary = annotate(raw, out, models_dir=models, stages=stages, cfg=cfg, force=force)
+    out_console.print(summary_text(summary), highlight=False)
+
+
+@annotate_app.command("evaluate")
+def annotate_evaluate(scene: Path = typer.Argument(..., help="annotated scene folder"),
+                      truth: Path = typer.Option(..., "--truth", help="the simulated session's truth/ folder"),
+                      max_frames: Optional[int] = typer.Option(None, "--max-frames", help="evaluate at most this many frames"),
+                      points: int = typer.Option(2000, "--points", help="surface samples per model")) -> None:
+    """Compare labels with the simulator's truth: motions, surface distance, mask IoU (JSON)."""
+    from tdof20.annotate.evaluate import evaluate_command
+
+    print(evaluate_command(scene, truth, max_frames=max_frames, n_points=points))
 
 
 # ----------------------------------------------------------------------------------- train / predict

@@ -33,7 +33,7 @@ def test_help_lists_only_built_commands():
     assert res.returncode == 0
     import re
     commands = set(re.findall(r"^│ (\w+) ", res.stdout, flags=re.M))
-    assert commands == {"demo", "capture", "dataset", "objects", "sim", "train", "predict", "benchmark"}
+    assert commands == {"demo", "capture", "annotate", "dataset", "objects", "sim", "train", "predict", "benchmark"}
 
 
 def test_objects_list_and_export(tmp_path):

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from tdof20.errors import TdofError
 from tdof20.formats import (
@@ -723,3 +724,26 @@ def test_atomic_writes_get_ordinary_permissions(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert (p.stat().st_mode & 0o777) == (0o666 & ~mask)
+
+
+def test_model_mesh_round_trip_and_bad_models(tmp_path):
+    from tdof20.formats import model_path, read_model_mesh, write_model_mesh
+    from tdof20.objects import get_object
+
+    tm = get_object(5).to_trimesh()
+    p = write_model_mesh(model_path(tmp_path, 5), tm.vertices, tm.faces)
+    assert p.name == "obj_000005.ply"
+    V, F = read_model_mesh(p)
+    assert np.allclose(V, tm.vertices, atol=1e-4) and np.array_equal(F, tm.faces)
+    with pytest.raises(TdofError, match="not found") as e:
+        read_model_mesh(tmp_path / "obj_000006.ply")
+    assert "obj_000006.ply" in str(e.value)
+    bad = tmp_path / "obj_000007.ply"
+    bad.write_bytes(p.read_bytes()[:300])
+    with pytest.raises(TdofError, match="obj_000007.ply"):
+        read_model_mesh(bad)
+    cloud = tmp_path / "obj_000008.ply"
+    trimesh.PointCloud(tm.vertices).export(cloud)
+    with pytest.raises(TdofError, match="no faces"):
+        read_model_mesh(cloud)
+    assert read_model_mesh(cloud, need_faces=False)[1].shape == (0, 3)

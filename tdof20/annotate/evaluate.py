@@ -102,20 +102,9 @@ def _open(path: str | Path, what: str) -> BopScene:
 
 
 def _load_mesh(models_dir: Path, obj_id: int) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
+    from tdof20.formats.bop import model_path, read_model_mesh
 
-    path = models_dir / f"obj_{obj_id:06d}.ply"
-    if not path.exists():
-        raise TdofError(f"no model of object {obj_id} (expected {path.name})", models_dir)
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on bad files
-        raise TdofError(f"cannot read the model ({type(e).__name__}: {e})", path) from None
-    V = np.asarray(mesh.vertices, float)
-    F = np.asarray(mesh.faces, np.int64)
-    if V.ndim != 2 or len(V) == 0 or len(F) == 0 or not np.isfinite(V).all():
-        raise TdofError("the model has no (finite) vertices or no faces", path)
-    return V, F
+    return read_model_mesh(model_path(models_dir, obj_id))
 
 
 class _Model:

@@ -240,17 +240,15 @@ class _Points:
 
     def __call__(self, obj_id: int) -> np.ndarray | None:
         if obj_id not in self.cache:
-            path = self.dir / f"obj_{obj_id:06d}.ply"
+            from tdof20.formats.bop import model_path, read_model_mesh
+            from tdof20.objects.catalog import sample_mesh_surface
+
+            path = model_path(self.dir, obj_id)
             pts = None
             try:
-                import trimesh
-
-                from tdof20.objects.catalog import sample_mesh_surface
-
-                m = trimesh.load(str(path), force="mesh", process=False)
-                pts = sample_mesh_surface(np.asarray(m.vertices), np.asarray(m.faces), self.n, seed=0)
-            except Exception as e:  # a missing or bad model only loses the points of the overlay
-                self.problems.append(f"{path}: model points not drawn ({type(e).__name__})")
+                pts = sample_mesh_surface(*read_model_mesh(path), self.n, seed=0)
+            except TdofError as e:  # a missing or bad model only loses the points of the overlay
+                self.problems.append(f"{e}: model points not drawn")
             self.cache[obj_id] = pts
         return self.cache[obj_id]
 

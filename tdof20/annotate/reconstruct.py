@@ -73,6 +73,8 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     turntable, a larger parallel plane, falls outside it); the table top is then the largest plane
     perpendicular to the axis (planes are peeled off by RANSAC one by one)."""
     vol = fuse(frames, camera, cfg)
+    if vol.hashmap().size() == 0:  # nothing integrated (no frame, or every depth empty): open3d cannot extract
+        return Reconstruction(np.zeros((0, 3)), np.r_[np.asarray(axis_dir, float), 0.0], [], None)
     pts = vol.extract_point_cloud(weight_threshold=cfg.min_weight).point.positions.numpy().astype(np.float64) * 1000.0
     mesh = vol.extract_triangle_mesh(weight_threshold=cfg.min_weight).to_legacy()
     mesh.scale(1000.0, center=(0, 0, 0))

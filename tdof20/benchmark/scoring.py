@@ -74,20 +74,9 @@ class SceneData:
 
 
 def _load_points(path: Path) -> np.ndarray:
-    import trimesh
+    from tdof20.formats.bop import read_model_mesh
 
-    try:
-        geom = trimesh.load(str(path), process=False)
-    except FileNotFoundError:
-        raise TdofError("model file not found", path) from None
-    except Exception as e:  # trimesh raises many types on bad files
-        raise TdofError(f"cannot read the model ({type(e).__name__}: {e})", path) from None
-    V = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
-        raise TdofError("the model has no vertices", path)
-    if not np.isfinite(V).all():
-        raise TdofError("the model has NaN or inf vertices", path)
-    return V
+    return read_model_mesh(path, need_faces=False)[0]
 
 
 def _numbers(path: Path, values: list, n: int, what: str) -> np.ndarray:

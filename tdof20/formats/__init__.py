@@ -42,10 +42,13 @@ from tdof20.formats.bop import (
     bbox_from_mask,
     dumps_bop_json,
     gt_info_from_masks,
+    model_path,
     pose_from_bop,
     pose_to_bop,
+    read_model_mesh,
     read_models_info,
     read_scene,
+    write_model_mesh,
     write_models_info,
 )
 
@@ -60,5 +63,6 @@ __all__ = [
     # bop
     "EMPTY_BBOX", "MODELS_INFO", "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "BopScene",
     "BopSceneWriter", "bbox_from_mask", "dumps_bop_json", "gt_info_from_masks", "pose_from_bop",
-    "pose_to_bop", "read_models_info", "read_scene", "write_models_info",
+    "pose_to_bop", "read_models_info", "read_scene", "write_models_info", "model_path",
+    "read_model_mesh", "write_model_mesh",
 ]

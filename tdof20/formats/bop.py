@@ -517,8 +517,56 @@ def read_models_info(path: str | Path) -> dict[int, dict]:
     return out
 
 
+# ---------------------------------------------------------------------------------------------
+# model meshes (obj_XXXXXX.ply)
+# ---------------------------------------------------------------------------------------------
+def model_path(models_dir: str | Path, obj_id: int) -> Path:
+    """``<models_dir>/obj_{obj_id:06d}.ply``."""
+    return Path(models_dir) / f"obj_{int(obj_id):06d}.ply"
+
+
+def read_model_mesh(path: str | Path, need_faces: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Read a model (PLY/OBJ/STL, mm) -> vertices (V,3) float64, faces (F,3) int64. One reader
+    for every stage; a missing, unreadable, empty or non-finite model raises TdofError naming the
+    file (``need_faces=False`` accepts a point cloud: faces then has shape (0,3))."""
+    import trimesh
+
+    p = Path(path)
+    if not p.exists():
+        raise TdofError("model file not found", p)
+    try:
+        geom = trimesh.load(str(p), process=False)
+    except Exception as e:  # trimesh raises many types on bad files
+        raise TdofError(f"cannot read the model ({type(e).__name__}: {e})", p) from None
+    if isinstance(geom, trimesh.Scene):
+        geom = geom.to_geometry() if len(geom.geometry) else None
+    V = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    if len(V) == 0:
+        raise TdofError("the model has no vertices", p)
+    if not np.isfinite(V).all():
+        raise TdofError("the model has NaN or inf vertices", p)
+    if need_faces and len(F) == 0:
+        raise TdofError("the model has no faces (a triangle mesh is needed)", p)
+    if len(F) and (F.min() < 0 or F.max() >= len(V)):
+        raise TdofError("the model's faces index vertices that do not exist", p)
+    return V, F
+
+
+def write_model_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """Write a model atomically as binary little-endian PLY with vertex normals (mm), the form
+    the BOP toolkit and trimesh read."""
+    import trimesh
+
+    tm = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=False)
+    p = Path(path)
+    atomic_write_bytes(p, trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True))
+    return p
+
+
 __all__ = [
     "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "MODELS_INFO", "EMPTY_BBOX", "BopScene",
     "BopSceneWriter", "read_scene", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop",
-    "pose_from_bop", "write_models_info", "read_models_info", "dumps_bop_json",
+    "pose_from_bop", "write_models_info", "read_models_info", "dumps_bop_json", "model_path",
+    "read_model_mesh", "write_model_mesh",
 ]

@@ -76,22 +76,15 @@ def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None
                     n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
     """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_XXXXXX.ply``,
     read with trimesh); every object of models_info.json unless ``obj_ids`` is given."""
-    import trimesh
-
     from tdof20.formats import read_models_info
+    from tdof20.formats.bop import model_path, read_model_mesh
 
     models_dir = Path(models_dir)
     ids = sorted(read_models_info(models_dir)) if obj_ids is None else [int(o) for o in obj_ids]
     out = {}
     for obj_id in ids:
-        ply = models_dir / f"obj_{obj_id:06d}.ply"
-        try:
-            mesh = trimesh.load(ply, force="mesh", process=False)
-        except (OSError, ValueError) as e:
-            raise TdofError(f"cannot read the model ({e})", ply) from None
-        if len(mesh.faces) == 0:
-            raise TdofError("the model has no faces (keypoints are sampled on the surface)", ply)
-        out[obj_id] = mesh_keypoints(mesh.vertices, mesh.faces, k, n_samples, seed)
+        V, F = read_model_mesh(model_path(models_dir, obj_id))  # keypoints are sampled on the surface
+        out[obj_id] = mesh_keypoints(V, F, k, n_samples, seed)
     return out
 
 

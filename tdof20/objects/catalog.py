@@ -24,7 +24,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import cdist
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import atomic_write_bytes, write_json
+from tdof20.formats.bop import model_path, write_model_mesh
+from tdof20.formats.io import write_json
 from tdof20.geometry import farthest_point_sampling
 from tdof20.objects import shapes as S
 
@@ -492,8 +493,7 @@ def export_models(out_dir: str | Path, obj_ids=None) -> Path:
     info = {}
     for m in models:
         tm = m.to_trimesh()
-        data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True)
-        atomic_write_bytes(out / f"obj_{m.obj_id:06d}.ply", data)
+        write_model_mesh(model_path(out, m.obj_id), tm.vertices, tm.faces)
         info[str(m.obj_id)] = m.models_info()
     write_json(out / "models_info.json", info)
     return out

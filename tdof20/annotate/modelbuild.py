@@ -1,0 +1,642 @@
+"""Object models from reconstructed clusters: surface, canonical frame, symmetries, samples,
+keypoints, the BOP models folder, and checked loading of a user's models folder (``--models``).
+
+    m = build_model_from_cluster(rec.clusters[0], rec.plane, viewpoints=cam_centres)
+    write_models({obj_id: m}, scene_dir / "models")
+    models = load_models(user_dir, obj_ids=[5, 15])          # {obj_id: (V, F, info)}
+
+Surface (:func:`build_model_from_cluster`): normals by PCA over the nearest neighbours, oriented
+towards the viewpoints that see each point (hidden-point removal per viewpoint; without
+viewpoints a virtual ring of cameras above the table, as on the rig); the bottom the table hides
+is closed by a disc of points on the table plane under the footprint (the 2D convex hull of the
+lowest points); screened Poisson (pymeshlab); then faces farther than ``trim_mm`` from the data
+are cut, the largest component kept, holes closed, the mesh decimated to ``target_faces`` and
+checked watertight with trimesh.
+
+Canonical frame (:func:`canonical_frame`), the catalog's convention (``tdof20.objects``):
+
+* z: the object's axis — its symmetry axis when it has one, else the best approximate one (the
+  axis about which turned copies of the surface stay closest to it: a mug's body axis) — pointing
+  along ``up`` (the table normal: z up, the base at z_min).
+* origin: on that axis at the mid-height of the model's extent along z.
+* x: continuous symmetry — the input's x projected off the axis (arbitrary but deterministic);
+  n-fold — towards a point of largest radius (a corner); none — towards the side with the most
+  surface far from the axis (a handle, a spout).
+
+Symmetries are found numerically. A candidate axis (``up`` if given, else the three principal
+axes of the surface) is refined by Gauss-Newton so that copies of the surface turned about it
+land on the surface (point-to-plane, distances truncated so that a handle does not pull). Then,
+with distances from the turned surface samples to the mesh (open3d ray casting): continuous if
+every turn of a set of 14 leaves all but ``sym_max_fraction`` of the samples within
+``sym_tol_mm``; else the largest n in 8..2 whose turns by 360°·k/n pass (the axis refined again
+for those turns); else none. BOP form: ``{"symmetries_continuous": [{"axis": [0,0,1],
+"offset": [0,0,0]}]}``, ``{"symmetries_discrete": [16 numbers per turn k = 1..n-1]}`` or ``{}``.
+
+Models folder (:func:`write_models`), every file written atomically::
+
+    models/obj_{id:06d}.ply         binary little-endian PLY, mm: float x y z nx ny nz,
+                                    uchar-int vertex_indices (trimesh and bop_toolkit read it)
+    models/models_info.json         BOP: diameter, min_x.., size_x.., symmetries (+ "source", ...)
+    models/keypoints.json           {"<obj_id>": 9x3 mm}: the bounding-box centre, then 8 farthest
+                                    points of surface samples (tdof20.methods.data.mesh_keypoints,
+                                    so it equals what the network's loader computes from the PLY)
+    models/obj_{id:06d}_samples.npy (n_samples,3) float32 mm, Monte-Carlo area-uniform samples
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import ConvexHull, cKDTree
+
+from tdof20.errors import TdofError
+from tdof20.geometry import rotation_matrix
+from tdof20.o3d import o3d
+from tdof20.objects.catalog import mesh_diameter, sample_mesh_surface
+
+KEYPOINTS_FILE = "keypoints.json"
+
+
+@dataclass(frozen=True)
+class ModelBuildConfig:
+    min_points: int = 500              # a smaller cluster is an error
+    normal_knn: int = 24               # neighbours of the PCA normal
+    poisson_depth: int = 9             # octree depth of screened Poisson (cell ~ 1.1*size/2^depth)
+    poisson_samples_per_node: float = 1.5
+    poisson_point_weight: float = 4.0  # screening: how strongly the surface passes through the points
+    poisson_threads: int = 1           # measured: 2.5 s with 1 thread, 25-150 s with 2 on a busy 2-core machine
+    base_band_mm: float = 3.0          # the footprint: hull of the points this close above the lowest
+    base_max_gap_mm: float = 12.0      # the bottom is closed when the lowest point is this close to the table
+    trim_mm: float = 3.0               # faces farther than this from every input point are cut
+    target_faces: int = 20000          # decimation target
+    sym_tol_mm: float = 1.5            # a turned sample within this of the surface is "on" it
+    sym_max_fraction: float = 0.008    # at most this fraction of turned samples may be off
+    sym_samples: int = 6000            # surface samples of the symmetry test
+    n_samples: int = 10000             # Monte-Carlo samples written with the model
+    n_keypoints: int = 9
+    seed: int = 0
+
+
+@dataclass
+class BuiltModel:
+    vertices: np.ndarray               # (V,3) float64 mm, canonical model frame
+    faces: np.ndarray                  # (F,3) int64
+    T_ref_model: np.ndarray            # (4,4) model -> reconstruction reference frame
+    symmetries: dict                   # BOP form (see the module docstring)
+    watertight: bool
+    info: dict = field(default_factory=dict)  # models_info entry (+ own keys: source, fit, timing)
+
+
+# ------------------------------------------------------------------------------------------
+# sampling and keypoints
+# ------------------------------------------------------------------------------------------
+def sample_points(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """(n,3) Monte-Carlo area-uniform surface samples, deterministic in ``seed`` (the catalog's
+    sampler, :func:`tdof20.objects.catalog.sample_mesh_surface`)."""
+    return sample_mesh_surface(vertices, faces, n, seed)
+
+
+def model_keypoints(vertices: np.ndarray, faces: np.ndarray, k: int = 9, seed: int = 0) -> np.ndarray:
+    """(k,3): the bounding-box centre, then k-1 farthest-point samples of the surface — the
+    network's own definition (:func:`tdof20.methods.data.mesh_keypoints`, 10000 samples), so
+    the keypoints written with a model are those its loader recomputes from the PLY."""
+    from tdof20.methods.data import KEYPOINT_SAMPLES, mesh_keypoints  # imports torch: only here
+
+    return mesh_keypoints(vertices, faces, k=k, n_samples=KEYPOINT_SAMPLES, seed=seed)
+
+
+# ------------------------------------------------------------------------------------------
+# symmetry and the canonical frame
+# ------------------------------------------------------------------------------------------
+_CONT_TEST_DEG = np.r_[np.arange(30.0, 360.0, 30.0), 7.0, 13.0, 187.0]   # the turns of the continuous test
+_CONT_FIT_DEG = np.array([50.0, 130.0, 230.0])                           # the turns the axis is fitted with
+
+
+class _Surface:
+    """Closest-point and distance queries to a triangle mesh (open3d ray casting, float32)."""
+
+    def __init__(self, V: np.ndarray, F: np.ndarray):
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(V, np.float32)),
+                                 o3d.core.Tensor(np.ascontiguousarray(F, np.uint32)))
+
+    def distance(self, P: np.ndarray) -> np.ndarray:
+        q = o3d.core.Tensor(np.ascontiguousarray(P, np.float32))
+        return self.scene.compute_distance(q).numpy().astype(np.float64)
+
+    def closest(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = self.scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(P, np.float32)))
+        return r["points"].numpy().astype(np.float64), r["primitive_normals"].numpy().astype(np.float64)
+
+
+def _basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return a, e1, np.cross(a, e1)
+
+
+def _turn(P: np.ndarray, a: np.ndarray, p: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """P (M,3) turned about the line (p, a) by each angle (rad) -> (K*M,3)."""
+    Rs = np.stack([rotation_matrix(a, t) for t in angles])
+    return (np.einsum("kij,mj->kmi", Rs, P - p) + p).reshape(-1, 3)
+
+
+def _refine_axis(surf: _Surface, S: np.ndarray, a: np.ndarray, p: np.ndarray, angles: np.ndarray,
+                 trunc: float, iters: int = 10) -> tuple[np.ndarray, np.ndarray, float]:
+    """Gauss-Newton on the axis (direction a, point p) so that the samples S turned by
+    ``angles`` lie on the surface (point-to-plane; pairs farther than ``trunc`` left out).
+    Returns (a, p, mean truncated distance)."""
+    a, e1, e2 = _basis(a)
+    p = np.asarray(p, float)
+    steps = np.array([1e-4, 1e-4, 1e-2, 1e-2])
+    lam = 1e-3
+    for _ in range(iters):
+        a, e1, e2 = _basis(a)
+        X = _turn(S, a, p, angles)
+        c, nrm = surf.closest(X)
+        r = np.einsum("ij,ij->i", X - c, nrm)
+        keep = np.linalg.norm(X - c, axis=1) < trunc
+        if keep.sum() < 12:
+            break
+        J = np.empty((len(X), 4))
+        for k in range(4):
+            da = a + (steps[k] * e1 if k == 0 else steps[k] * e2 if k == 1 else 0)
+            dp = p + (steps[k] * e1 if k == 2 else steps[k] * e2 if k == 3 else 0)
+            J[:, k] = np.einsum("ij,ij->i", _turn(S, da / np.linalg.norm(da), dp, angles) - X, nrm) / steps[k]
+        Jk, rk = J[keep], r[keep]
+        H = Jk.T @ Jk
+        dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), Jk.T @ rk)
+        a = a + dx[0] * e1 + dx[1] * e2
+        a /= np.linalg.norm(a)
+        p = p + dx[2] * e1 + dx[3] * e2
+        if abs(dx[0]) + abs(dx[1]) < 1e-6 and abs(dx[2]) + abs(dx[3]) < 1e-4:
+            break  # a right hypothesis converges in a few steps; a wrong one wanders until iters
+    cost = float(np.minimum(surf.distance(_turn(S, a, p, angles)), trunc).mean())
+    return a, p, cost
+
+
+def _off_fraction(surf: _Surface, S: np.ndarray, a: np.ndarray, p: np.ndarray, angles: np.ndarray,
+                  tol: float) -> float:
+    """Fraction of the samples that some turn of ``angles`` takes farther than ``tol`` off the surface."""
+    d = surf.distance(_turn(S, a, p, angles)).reshape(len(angles), len(S))
+    return float((d.max(axis=0) > tol).mean())
+
+
+def _symmetry_about(surf: _Surface, S_fit: np.ndarray, S_test: np.ndarray, a: np.ndarray, p: np.ndarray,
+                    trunc: float, cfg: ModelBuildConfig) -> tuple[str | int | None, np.ndarray, np.ndarray, float]:
+    """Classify the symmetry about a candidate axis -> (kind: "continuous" | n | None, a, p, cost).
+
+    Every hypothesis starts from the candidate (a, p): refining for the wrong turns (e.g.
+    generic turns of a square) can drift off the true axis."""
+    a0, p0 = a, p
+    a, p, cost = _refine_axis(surf, S_fit, a0, p0, np.radians(_CONT_FIT_DEG), trunc)
+    if _off_fraction(surf, S_test, a, p, np.radians(_CONT_TEST_DEG), cfg.sym_tol_mm) <= cfg.sym_max_fraction:
+        return "continuous", a, p, cost
+    for n in range(8, 1, -1):
+        turns = 2.0 * np.pi * np.arange(1, n) / n
+        an, pn, cn = _refine_axis(surf, S_fit, a0, p0, turns, trunc)
+        if _off_fraction(surf, S_test, an, pn, turns, cfg.sym_tol_mm) <= cfg.sym_max_fraction:
+            return n, an, pn, cn
+    return None, a, p, cost
+
+
+def _symmetry_samples(surf: _Surface, V: np.ndarray, F: np.ndarray, cfg: ModelBuildConfig,
+                      face_weights: np.ndarray | None) -> np.ndarray:
+    """The surface samples the symmetry is judged on: only the outer surface (a sample whose
+    outward normal ray leaves the object without hitting it again) and only faces with weight
+    > 0. A vessel's inside is seen by few views and reconstructed worst; the outside is what
+    tells the poses of an object apart."""
+    Fs = F if face_weights is None else F[np.asarray(face_weights).reshape(-1) > 0]
+    if len(Fs) == 0:
+        Fs = F
+    S = sample_points(V, Fs, 2 * cfg.sym_samples, cfg.seed)
+    _, nrm = surf.closest(S)
+    tri = V[F]
+    if np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() < 0:
+        nrm = -nrm  # faces wound inwards: the signed volume is negative
+    size = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    rays = np.concatenate([S + 1e-4 * size * nrm, nrm], axis=1).astype(np.float32)
+    out = np.isinf(surf.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+    if out.mean() < 0.1:  # no recognisable outside (an odd mesh): judge on everything
+        out[:] = True
+    return S[out][: cfg.sym_samples]
+
+
+def _rank(kind) -> int:
+    return 100 if kind == "continuous" else 0 if kind is None else int(kind)
+
+
+def canonical_frame(vertices: np.ndarray, faces: np.ndarray, up: np.ndarray | None = None,
+                    cfg: ModelBuildConfig = ModelBuildConfig(),
+                    face_weights: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """(T_model_from_input (4,4), symmetries in BOP form, expressed in the model frame).
+
+    See the module docstring for the frame's convention and the symmetry test. ``up`` (the table
+    normal in the input frame) is the first candidate axis and fixes the sign of z; without it
+    the three principal axes of the surface are tried and z takes the sign of the input's z."""
+    V = np.asarray(vertices, float)
+    F = np.asarray(faces, np.int64)
+    surf = _Surface(V, F)
+    S_test = _symmetry_samples(surf, V, F, cfg, face_weights)
+    S_fit = S_test[: min(600, len(S_test))]
+    tri = V[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    c = (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()  # on any symmetry axis
+    size = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    trunc = max(3.0 * cfg.sym_tol_mm, 0.03 * size)
+    if up is not None:
+        up = np.asarray(up, float) / np.linalg.norm(up)
+        cands = [up]
+    else:
+        w, U = np.linalg.eigh(np.cov((S_test - c).T))
+        # a symmetry axis of order >= 3 is the principal axis whose spread differs from the others
+        distinct = [min(abs(w[k] - w[j]) for j in range(3) if j != k) for k in range(3)]
+        cands = [U[:, k] for k in np.argsort(distinct)[::-1]]
+    best = None
+    for a0 in cands:
+        kind, a, p, cost = _symmetry_about(surf, S_fit, S_test, a0, c, trunc, cfg)
+        key = (-_rank(kind), cost)
+        if best is None or key < best[0]:
+            best = (key, kind, a, p)
+        if kind == "continuous":
+            break
+    _, kind, a, p = best
+    ref = up if up is not None else np.array([0.0, 0.0, 1.0])
+    if a @ ref < 0:
+        a = -a
+    if kind is None and up is not None:
+        a = up  # an upright object without symmetry: z is the table normal itself
+    # origin: on the axis at the mid-height of the extent along it
+    h = (V - p) @ a
+    o = p + 0.5 * (h.min() + h.max()) * a
+    # x: by the kind of symmetry (module docstring)
+    _, e1, e2 = _basis(a)
+    rel = S_test - o
+    rad = rel - np.outer(rel @ a, a)
+    r = np.linalg.norm(rad, axis=1)
+    phi = np.arctan2(rad @ e2, rad @ e1)
+    if kind == "continuous":
+        x_in = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = x_in - (x_in @ a) * a
+        ang = np.arctan2(x @ e2, x @ e1)
+    elif kind is None:
+        ang = np.angle(np.sum(r * np.exp(1j * phi)))
+    else:
+        n = int(kind)
+        ang = np.angle(np.sum((r - r.mean()) * np.exp(1j * n * phi))) / n
+    x = np.cos(ang) * e1 + np.sin(ang) * e2
+    y = np.cross(a, x)
+    R = np.stack([x, y, a], axis=1)  # columns: the model axes in the input frame
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ o
+    return T, _bop_symmetries(kind)
+
+
+def _bop_symmetries(kind) -> dict:
+    if kind == "continuous":
+        return {"symmetries_continuous": [{"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}]}
+    if kind is None:
+        return {}
+    n = int(kind)
+    out = []
+    for k in range(1, n):
+        T = np.eye(4)
+        T[:3, :3] = rotation_matrix([0.0, 0.0, 1.0], 2.0 * np.pi * k / n)
+        T[np.abs(T) < 1e-12] = 0.0
+        out.append([float(v) for v in T.reshape(-1)])
+    return {"symmetries_discrete": out}
+
+
+def symmetry_kind(symmetries: dict) -> str | int | None:
+    """"continuous", n (n-fold discrete) or None from a BOP symmetries dict."""
+    if symmetries.get("symmetries_continuous"):
+        return "continuous"
+    if symmetries.get("symmetries_discrete"):
+        return len(symmetries["symmetries_discrete"]) + 1
+    return None
+
+
+# ------------------------------------------------------------------------------------------
+# the surface from a cluster
+# ------------------------------------------------------------------------------------------
+def _plane(table_plane) -> tuple[np.ndarray, float]:
+    pl = np.asarray(table_plane, float).reshape(-1)
+    if pl.size != 4 or not np.all(np.isfinite(pl)) or np.linalg.norm(pl[:3]) < 1e-9:
+        raise TdofError(f"table plane must be 4 finite numbers (n, d) with n != 0, got {pl.tolist()}")
+    s = np.linalg.norm(pl[:3])
+    return pl[:3] / s, float(pl[3] / s)
+
+
+def _virtual_viewpoints(P: np.ndarray, up: np.ndarray, n_az: int = 12) -> np.ndarray:
+    """Cameras on rings above the object, as the rig's arm positions see it from the turntable."""
+    c = P.mean(axis=0)
+    _, e1, e2 = _basis(up)
+    dist = 4.0 * float(np.linalg.norm(P - c, axis=1).max()) + 200.0
+    out = [c + dist * up]
+    for elev in np.radians([15.0, 40.0, 65.0]):
+        for az in np.linspace(0.0, 2.0 * np.pi, n_az, endpoint=False):
+            d = np.cos(elev) * (np.cos(az) * e1 + np.sin(az) * e2) + np.sin(elev) * up
+            out.append(c + dist * d)
+    return np.asarray(out)
+
+
+def _thin_viewpoints(vp: np.ndarray, centre: np.ndarray, k: int) -> np.ndarray:
+    """At most ``k`` viewpoints spread over their directions from the object."""
+    if len(vp) <= k:
+        return vp
+    from tdof20.geometry import farthest_point_sampling
+
+    d = (vp - centre) / np.linalg.norm(vp - centre, axis=1, keepdims=True)
+    pick = farthest_point_sampling(d, k)
+    idx = cKDTree(d).query(pick)[1]
+    return vp[np.unique(idx)]
+
+
+def _oriented_normals(P: np.ndarray, viewpoints: np.ndarray, cfg: ModelBuildConfig) -> np.ndarray:
+    """PCA normals over ``normal_knn`` neighbours, each turned towards the viewpoints that see its
+    point (hidden-point removal); points no viewpoint sees take the sign their neighbours vote for."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(cfg.normal_knn))
+    N = np.asarray(pc.normals).copy()
+    radius = 100.0 * float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
+    votes = np.zeros(len(P))
+    for v in viewpoints:
+        _, idx = pc.hidden_point_removal(np.asarray(v, float), radius)
+        idx = np.asarray(idx)
+        d = v - P[idx]
+        votes[idx] += np.einsum("ij,ij->i", N[idx], d) / np.linalg.norm(d, axis=1)
+    sign = np.sign(votes)
+    if (sign == 0).any() and (sign != 0).any():
+        _, nb = cKDTree(P).query(P, k=min(cfg.normal_knn, len(P)))
+        for _ in range(20):
+            todo = np.flatnonzero(sign == 0)
+            if len(todo) == 0:
+                break
+            agree = np.einsum("ij,ikj->ik", N[todo], N[nb[todo]]) * sign[nb[todo]]
+            s = np.sign(agree.sum(axis=1))
+            if not s.any():
+                break
+            sign[todo] = s
+    sign[sign == 0] = 1.0
+    return N * sign[:, None]
+
+
+def _base_disc(P: np.ndarray, n: np.ndarray, d: float, spacing: float, cfg: ModelBuildConfig):
+    """Points (and normals -n) on the table plane under the object's footprint: the 2D convex
+    hull of the points within ``base_band_mm`` of the lowest, filled on a grid. None when the
+    object does not reach down to the table."""
+    h = P @ n + d
+    if h.min() > cfg.base_max_gap_mm:
+        return None
+    band = P[h < h.min() + cfg.base_band_mm]
+    _, e1, e2 = _basis(n)
+    uv = np.stack([band @ e1, band @ e2], axis=1)
+    if len(uv) < 3:
+        return None
+    try:
+        hull = ConvexHull(uv)
+    except Exception:  # collinear band points: no footprint to close
+        return None
+    from scipy.spatial import Delaunay
+
+    poly = uv[hull.vertices]
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    gu, gv = np.meshgrid(np.arange(lo[0], hi[0] + spacing, spacing), np.arange(lo[1], hi[1] + spacing, spacing))
+    g = np.stack([gu.ravel(), gv.ravel()], axis=1)
+    g = g[Delaunay(poly).find_simplex(g) >= 0]
+    # the outline itself, densely, so that the disc reaches the walls
+    edges = np.concatenate([np.linspace(poly[i], poly[(i + 1) % len(poly)],
+                                        max(2, int(np.linalg.norm(poly[(i + 1) % len(poly)] - poly[i]) / spacing) + 1),
+                                        endpoint=False) for i in range(len(poly))])
+    g = np.concatenate([g, edges])
+    base = -d * n  # the plane's point nearest the origin
+    pts = base + g[:, :1] * e1 + g[:, 1:] * e2
+    return pts, np.tile(-n, (len(pts), 1))
+
+
+def _largest_component(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    labels = trimesh.graph.connected_component_labels(trimesh.graph.face_adjacency(F), node_count=len(F))
+    if len(F) == 0:
+        return V, F
+    keep = labels == np.bincount(labels).argmax()
+    F = F[keep]
+    used = np.unique(F)
+    remap = np.full(len(V), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F]
+
+
+def _is_watertight(V: np.ndarray, F: np.ndarray) -> bool:
+    import trimesh
+
+    return bool(trimesh.Trimesh(vertices=V, faces=F, process=False).is_watertight)
+
+
+def _surface_from_points(P: np.ndarray, N: np.ndarray, data: np.ndarray,
+                         cfg: ModelBuildConfig) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Screened Poisson, trim, largest component, close holes, decimate -> (V, F, watertight)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(P, np.float64),
+                               v_normals_matrix=np.ascontiguousarray(N, np.float64)))
+    ms.generate_surface_reconstruction_screened_poisson(
+        depth=cfg.poisson_depth, samplespernode=cfg.poisson_samples_per_node,
+        pointweight=cfg.poisson_point_weight, preclean=True, threads=cfg.poisson_threads)
+    m = ms.current_mesh()
+    V, F = m.vertex_matrix().copy(), m.face_matrix().astype(np.int64)
+    # trim what the data does not support (Poisson closes unseen regions with smooth sheets)
+    far = cKDTree(data).query(V, workers=-1)[0] > cfg.trim_mm
+    F = F[~far[F].any(axis=1)]
+    V, F = _largest_component(V, F)
+    if len(F) < 4:
+        raise TdofError("the surface reconstruction of the cluster is empty (too few or too scattered points)")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_repair_non_manifold_edges()
+    ms.meshing_repair_non_manifold_vertices()
+    # (new faces left unselected: the decimation below would otherwise touch only them)
+    ms.meshing_close_holes(maxholesize=100000, selfintersection=False, newfaceselected=False)
+    if ms.current_mesh().face_number() > cfg.target_faces:
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=cfg.target_faces, preservetopology=True,
+                                                    preservenormal=True, planarquadric=True, autoclean=True)
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    V, F = m.vertex_matrix().copy(), m.face_matrix().astype(np.int64)
+    for _ in range(3):  # decimation can leave a non-manifold edge: cut it out, close, again
+        if _is_watertight(V, F):
+            return V, F, True
+        V, F = _largest_component(V, F)
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F))
+        ms.meshing_repair_non_manifold_edges()
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_close_holes(maxholesize=100000, selfintersection=False, newfaceselected=False)
+        ms.meshing_remove_unreferenced_vertices()
+        m = ms.current_mesh()
+        V, F = m.vertex_matrix().copy(), m.face_matrix().astype(np.int64)
+    return V, F, _is_watertight(V, F)
+
+
+def build_model_from_cluster(points: np.ndarray, table_plane: np.ndarray, cfg: ModelBuildConfig = ModelBuildConfig(),
+                             viewpoints: np.ndarray | None = None, normals: np.ndarray | None = None) -> BuiltModel:
+    """A watertight model from one object's cluster (N,3) mm in the reference frame.
+
+    ``table_plane`` (4,): n·x + d = 0 with n up towards the objects. ``viewpoints`` (K,3): the
+    camera centres in the reference frame (normals are turned towards the ones that see them;
+    without them a virtual ring above the table). ``normals`` (N,3): oriented normals of the
+    points if the caller has them (e.g. the TSDF's gradients) — then no estimation is done.
+    Raises TdofError for a cluster that is too small or degenerate."""
+    t0 = time.perf_counter()
+    P = np.asarray(points, float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise TdofError(f"cluster must be an (N,3) array of points, got shape {P.shape}")
+    ok = np.all(np.isfinite(P), axis=1)
+    if normals is not None:
+        normals = np.asarray(normals, float)
+        if normals.shape != P.shape:
+            raise TdofError(f"normals must match the cluster's shape {P.shape}, got {normals.shape}")
+        ok &= np.all(np.isfinite(normals), axis=1)
+        normals = normals[ok]
+    P = P[ok]
+    if len(P) < cfg.min_points:
+        raise TdofError(f"cluster too small to build a model: {len(P)} points (need >= {cfg.min_points})")
+    n, d = _plane(table_plane)
+    h = P @ n + d
+    above = h > -cfg.trim_mm
+    P = P[above]
+    if normals is not None:
+        normals = normals[above]
+    if len(P) < cfg.min_points:
+        raise TdofError(f"cluster lies below the table plane: {len(P)} points above it (need >= {cfg.min_points})")
+    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False) / np.sqrt(len(P))
+    if sv[1] < 2.0 or sv[2] < 0.5:
+        raise TdofError(f"cluster is degenerate (spread {sv.round(2).tolist()} mm along its principal axes): "
+                        "not an object's surface")
+    spacing = float(np.median(cKDTree(P).query(P, k=2, workers=-1)[0][:, 1]))
+    if normals is None:
+        vp = _virtual_viewpoints(P, n) if viewpoints is None else np.asarray(viewpoints, float).reshape(-1, 3)
+        vp = _thin_viewpoints(vp, P.mean(axis=0), 48)
+        N = _oriented_normals(P, vp, cfg)
+    else:
+        N = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    disc = _base_disc(P, n, d, max(spacing, 0.5), cfg)
+    data = P
+    if disc is not None:
+        P_all, N_all = np.concatenate([P, disc[0]]), np.concatenate([N, disc[1]])
+        data = P_all
+    else:
+        P_all, N_all = P, N
+    t_pre = time.perf_counter()
+    V, F, watertight = _surface_from_points(P_all, N_all, data, cfg)
+    t_surf = time.perf_counter()
+    supported = cKDTree(data).query(V[F].mean(axis=1), workers=-1)[0] <= cfg.trim_mm  # not hole fillers
+    T_model_ref, sym = canonical_frame(V, F, up=n, cfg=cfg, face_weights=supported)
+    t_frame = time.perf_counter()
+    V_m = V @ T_model_ref[:3, :3].T + T_model_ref[:3, 3]
+    dist = _Surface(V, F).distance(P)
+    info = _geometry_info(V_m)
+    info.update(sym)
+    info.update({"source": "poisson", "watertight": watertight, "n_cluster_points": int(len(P)),
+                 "cluster_to_model_median_mm": float(np.median(dist)),
+                 "cluster_to_model_p95_mm": float(np.percentile(dist, 95)),
+                 "closed_bottom": disc is not None,
+                 "time_s": {"normals": round(t_pre - t0, 3), "surface": round(t_surf - t_pre, 3),
+                            "frame": round(t_frame - t_surf, 3), "total": round(time.perf_counter() - t0, 3)}})
+    return BuiltModel(vertices=V_m, faces=F, T_ref_model=np.linalg.inv(T_model_ref), symmetries=sym,
+                      watertight=watertight, info=info)
+
+
+def _geometry_info(V: np.ndarray) -> dict:
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    size = hi - lo
+    return {"diameter": float(mesh_diameter(V)),
+            "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
+            "size_x": float(size[0]), "size_y": float(size[1]), "size_z": float(size[2])}
+
+
+# ------------------------------------------------------------------------------------------
+# the models folder
+# ------------------------------------------------------------------------------------------
+_METRES_BELOW_MM = 5.0     # no object of this field is under 5 mm across: a smaller model is in metres
+_INFO_TOL = 0.05           # the mesh's diameter and models_info.json's may differ by 5 %
+
+
+def write_models(models: dict[int, BuiltModel], out_dir: str | Path, n_samples: int = 10000,
+                 n_keypoints: int = 9, seed: int = 0) -> Path:
+    """Write built models as a BOP models folder (see the module docstring): PLY meshes,
+    models_info.json (with the symmetries and the build's own keys), keypoints.json and the
+    Monte-Carlo samples; every file atomically. Returns the folder."""
+    from tdof20.formats import atomic_write_bytes, write_json
+    from tdof20.formats.bop import model_path, write_model_mesh, write_models_info
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    infos, kps = {}, {}
+    for obj_id, m in sorted(models.items()):
+        o = int(obj_id)
+        write_model_mesh(model_path(out, o), m.vertices, m.faces)
+        S = sample_points(m.vertices, m.faces, n_samples, seed=seed).astype(np.float32)
+        buf = io.BytesIO()
+        np.save(buf, S)
+        atomic_write_bytes(out / f"obj_{o:06d}_samples.npy", buf.getvalue())
+        kps[str(o)] = model_keypoints(m.vertices, m.faces, n_keypoints, seed=seed).round(6).tolist()
+        e = dict(m.info)
+        for k in ("symmetries_continuous", "symmetries_discrete"):
+            e.pop(k, None)
+        e.update(_geometry_info(m.vertices))
+        e.update(m.symmetries)
+        infos[o] = e
+    write_models_info(out, infos)
+    write_json(out / KEYPOINTS_FILE, kps)
+    return out
+
+
+def load_models(models_dir: str | Path, obj_ids=None) -> dict[int, tuple[np.ndarray, np.ndarray, dict]]:
+    """A user's (or a single-object scene's) BOP models folder -> {obj_id: (V (n,3) mm, F (m,3),
+    models_info entry)}, every object of ``obj_ids`` (default: all of models_info.json).
+
+    Checked before anything is used: the folder and models_info.json exist, every object has a
+    readable triangle mesh, the mesh is in millimetres (a model under 5 mm across, or one a
+    thousand times smaller than its models_info diameter, is in metres) and its diameter agrees
+    with models_info.json within 5 %. Every problem raises TdofError naming the file."""
+    from tdof20.formats.bop import MODELS_INFO, model_path, read_model_mesh, read_models_info
+
+    d = Path(models_dir)
+    if not d.is_dir():
+        raise TdofError("models folder not found (--models: a BOP models folder, obj_XXXXXX.ply in mm + "
+                        "models_info.json)", d)
+    if not (d / MODELS_INFO).exists():
+        raise TdofError(f"no {MODELS_INFO} in the models folder (a BOP models folder is expected)", d)
+    infos = read_models_info(d)
+    ids = sorted(infos) if obj_ids is None else sorted({int(o) for o in obj_ids})
+    missing = [o for o in ids if o not in infos]
+    if missing:
+        raise TdofError(f"no entry for object(s) {missing} (the session's objects must have models)", d / MODELS_INFO)
+    out = {}
+    for o in ids:
+        p = model_path(d, o)
+        V, F = read_model_mesh(p)
+        dia = float(mesh_diameter(V)) if len(V) >= 4 else float(np.ptp(V, axis=0).max())
+        info_dia = float(infos[o]["diameter"])
+        if info_dia < _METRES_BELOW_MM:
+            raise TdofError(f"object {o}: diameter {info_dia:g} looks like metres, millimetres expected",
+                            d / MODELS_INFO)
+        if dia < _METRES_BELOW_MM:
+            raise TdofError(f"the model is {dia:.4g} across: looks like metres, millimetres expected "
+                            f"(models_info.json says {info_dia:.1f} mm)", p)
+        if abs(dia - info_dia) > _INFO_TOL * info_dia:
+            raise TdofError(f"the mesh is {dia:.1f} mm across but models_info.json says {info_dia:.1f} mm "
+                            f"(another model, or another unit)", p)
+        out[o] = (V, F, infos[o])
+    return out
