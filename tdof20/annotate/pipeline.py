@@ -565,7 +565,7 @@ def _stage_register(ctx: _Ctx) -> dict:
         raise TdofError(f"the session has no {ctx.cfg.register.phase} phase (phases: {', '.join(info.phases)}): "
                         f"annotation registers the opaque twins' depth; capture the opaque phase first",
                         ctx.raw / "session.json")
-    reg = register_session(ctx.raw, ctx.cfg.register, progress=ctx.progress)
+    reg = register_session(ctx.raw, ctx.cfg.register, progress=ctx.progress, workers=ctx.cfg.label.workers)
     reg.save(ctx.reg_file)
     return {"flagged": len(reg.flagged_frames())}
 

@@ -86,6 +86,9 @@ class RegistrationConfig:
     icp_iterations: tuple[int, ...] = (20, 15, 15)        # per scale
     normal_radius_mm: float = 12.0            # normals: neighbours within this radius (wide: depth
     normal_max_nn: int = 60                   # quantisation terraces must not tilt them)
+    normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud and handed to the
+                                              # finest level's points (nearest): 4x fewer points and
+                                              # neighbours; None = on the finest level itself
     # data: depth range and plane
     min_depth_mm: float = 150.0
     max_depth_mm: float = 2000.0
@@ -377,10 +380,17 @@ class _Pyramid:
             self.levels = levels
         else:
             fine = _pcd(points).voxel_down_sample(cfg.voxel_sizes_mm[-1])
-            v = cfg.voxel_sizes_mm[-1]
-            fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_mm, max_nn=cfg.normal_max_nn))
+            sparse = fine.voxel_down_sample(cfg.normal_voxel_mm) if cfg.normal_voxel_mm else fine
+            sparse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_mm,
+                                                                         max_nn=cfg.normal_max_nn))
             if viewpoint is not None:
-                fine.orient_normals_towards_camera_location(viewpoint)
+                sparse.orient_normals_towards_camera_location(viewpoint)
+            if sparse is not fine:  # each fine point takes the normal of its nearest sparse point
+                from scipy.spatial import cKDTree
+
+                S = np.asarray(sparse.points)
+                idx = cKDTree(S).query(np.asarray(fine.points), workers=-1)[1] if len(S) else []
+                fine.normals = o3d.utility.Vector3dVector(np.asarray(sparse.normals)[idx])
             self.levels = []
             for v in cfg.voxel_sizes_mm[:-1]:
                 d = fine.voxel_down_sample(v)
@@ -492,7 +502,7 @@ def _icp_prior(src: _Pyramid, tgt: _Pyramid, prior: np.ndarray, centre: np.ndarr
         it = cfg.icp_iterations[min(i, len(cfg.icp_iterations) - 1)]
         for _ in range(it):
             X = S @ T[:3, :3].T + T[:3, 3]
-            d, idx = tree.query(X, distance_upper_bound=dist, workers=-1)
+            d, idx = tree.query(X, distance_upper_bound=dist)  # <= max_source_points: threads cost more
             ok = np.isfinite(d)
             if ok.sum() < 10:
                 break
@@ -517,7 +527,7 @@ def _icp_prior(src: _Pyramid, tgt: _Pyramid, prior: np.ndarray, centre: np.ndarr
     S = np.asarray(src.source(n).points)
     tree, Q, N = tgt.tree(n)
     X = S @ T[:3, :3].T + T[:3, 3]
-    d, _ = tree.query(X, distance_upper_bound=dist, workers=-1)
+    d, _ = tree.query(X, distance_upper_bound=dist)
     ok = np.isfinite(d)
     fit = float(ok.mean()) if len(S) else 0.0
     rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
@@ -744,6 +754,7 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     """Everything within one arm position. Returns (arm info, T_arm_frame per step, frames, fused cloud)."""
     info = session.info
     K, sd = info.steps, info.step_deg
+    o3d.utility.random.seed(arm)  # RANSAC of the table plane: the same result in any process, any order
     A = _Arm(arm, K)
     available = [k for k in range(K) if session.has_frame(cfg.phase, arm, k)]
     for k in range(K):
@@ -909,12 +920,40 @@ def _fuse(clouds: list, poses: list[np.ndarray], voxel: float) -> "o3d.geometry.
     return pc
 
 
+class _ArmJob:
+    """One arm position's registration as a picklable job for :func:`run_chunks` (worker
+    processes): returns the fused cloud as arrays, since open3d clouds do not pickle."""
+
+    def __init__(self, session_dir: Path, cfg: "RegistrationConfig", sign: float):
+        self.session_dir, self.cfg, self.sign = Path(session_dir), cfg, sign
+
+    def __call__(self, arm: int):
+        from tdof20.progress import progress as quiet
+
+        session = RawSession.open(self.session_dir)
+        t = time.perf_counter()
+        with quiet(False) as prog:
+            A, poses, fr, cloud = _register_arm(session, self.cfg, arm, self.sign, prog)
+        return arm, A, poses, fr, np.asarray(cloud.points), np.asarray(cloud.normals), time.perf_counter() - t
+
+
+def _cloud(points: np.ndarray, normals: np.ndarray) -> "o3d.geometry.PointCloud":
+    pc = _pcd(points)
+    if len(normals):
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    return pc
+
+
 # ---------------------------------------------------------------------------------------------
 # the session
 # ---------------------------------------------------------------------------------------------
 def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = None,
-                     progress: bool = True) -> RegistrationResult:
+                     progress: bool = True, workers: int | None = 1) -> RegistrationResult:
     """Register every frame of a raw session to frame (arm 0, step 0) from the opaque depth.
+
+    The arm positions are independent until they are related at the end: with ``workers`` > 1
+    (None = every core) they run on that many local worker processes, one arm each (the result
+    is the same; only the progress display is coarser).
 
     Returns a :class:`RegistrationResult`; flagged frames keep their best (prior) pose and say why.
     Raises :class:`TdofError` (one line) when the session cannot be registered at all (no opaque
@@ -934,11 +973,23 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     fused: dict[int, Any] = {}
     per_arm: dict[int, dict[int, np.ndarray]] = {}
     T_base_cam0 = info.T_base_cam(0)
+    from tdof20.annotate.executors import resolve_workers, run_chunks
+
+    n_workers = min(resolve_workers(workers), info.n_arms)
+    results: dict[int, tuple] = {}
+    if n_workers > 1:   # one arm per worker process; a failing arm raises its TdofError here
+        for arm, A, poses, fr, P, N, dt in run_chunks(_ArmJob(session.path, cfg, sign), range(info.n_arms),
+                                                      workers=n_workers, progress=progress,
+                                                      description="register (arm positions)", unit="arm"):
+            results[arm] = (A, poses, fr, _cloud(P, N), dt)
     with _progress(progress, unit="icp") as prog:
         for a in range(info.n_arms):
-            ta = time.perf_counter()
-            A, poses, fr, cloud = _register_arm(session, cfg, a, sign, prog)
-            timing[f"arm{a}"] = round(time.perf_counter() - ta, 3)
+            if a not in results:
+                ta = time.perf_counter()
+                A, poses, fr, cloud = _register_arm(session, cfg, a, sign, prog)
+                results[a] = (A, poses, fr, cloud, time.perf_counter() - ta)
+            A, poses, fr, cloud, dt = results[a]
+            timing[f"arm{a}"] = round(dt, 3)
             per_arm[a] = poses
             fused[a] = cloud
             frames.extend(fr)
