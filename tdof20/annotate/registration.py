@@ -86,6 +86,8 @@ class RegistrationConfig:
     icp_iterations: tuple[int, ...] = (20, 15, 15)        # per scale
     normal_radius_mm: float = 12.0            # normals: neighbours within this radius (wide: depth
     normal_max_nn: int = 60                   # quantisation terraces must not tilt them)
+    icp_tol_rad: float = 2e-5                 # an ICP level stops when its step turns less than this (0.001 deg)
+    icp_tol_mm: float = 2e-3                  # ... and moves less than this (measured: 16 -> 13 s CPU per 40 frames, same accuracy)
     normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud and handed to the
                                               # finest level's points (nearest): 4x fewer points and
                                               # neighbours; None = on the finest level itself
@@ -520,7 +522,7 @@ def _icp_prior(src: _Pyramid, tgt: _Pyramid, prior: np.ndarray, centre: np.ndarr
             step[:3, :3] = Rw
             step[:3, 3] = c - Rw @ c + v
             T = step @ T
-            if np.linalg.norm(w) < 1e-6 and np.linalg.norm(v) < 1e-4:
+            if np.linalg.norm(w) < cfg.icp_tol_rad and np.linalg.norm(v) < cfg.icp_tol_mm:
                 break
     n = levels[-1]
     dist = cfg.icp_dist_factor * cfg.voxel_sizes_mm[n]
