@@ -63,7 +63,6 @@ import math
 import os
 import shutil
 import time
-import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,6 +78,7 @@ from tdof20.annotate.registration import RegistrationConfig, RegistrationResult,
 from tdof20.capture.config import _convert, _fail
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, atomic_write_bytes, read_json, write_json
+from tdof20.formats.io import read_toml
 from tdof20.formats.bop import read_models_info, write_models_info
 from tdof20.o3d import o3d
 
@@ -239,14 +239,7 @@ def annotate_config_from_dict(data: dict, source: str = "") -> AnnotateConfig:
 def load_annotate_config(path: str | Path) -> AnnotateConfig:
     """Read and check a TOML annotation config; any problem is one line naming the file."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise TdofError("config file not found", path) from None
-    except tomllib.TOMLDecodeError as e:
-        raise TdofError(f"malformed TOML: {e}", path) from None
-    except (UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    data = read_toml(path)
     return annotate_config_from_dict(data, str(path))
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from tdof20.errors import TdofError
+from tdof20.formats.io import read_toml
 
 TWO_PI = 2 * math.pi
 PHASES = ("transparent", "opaque")
@@ -177,14 +177,7 @@ def config_from_dict(data: dict, source: str = "") -> CaptureConfig:
 def load_config(path: str | Path) -> CaptureConfig:
     """Read and check a TOML capture config; any problem is a one-line TdofError naming the file."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise TdofError("config file not found", path) from None
-    except tomllib.TOMLDecodeError as e:
-        raise TdofError(f"malformed TOML: {e}", path) from None
-    except (UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+    data = read_toml(path)
     return config_from_dict(data, str(path))
 
 

@@ -91,6 +91,21 @@ def read_json(path: str | Path) -> Any:
         raise TdofError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", path) from None
 
 
+def read_toml(path: str | Path, what: str = "config file") -> dict:
+    """A TOML file as a dict; a missing, unreadable or malformed file is one TdofError naming it."""
+    import tomllib
+
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise TdofError(f"{what} not found", path) from None
+    except tomllib.TOMLDecodeError as e:
+        raise TdofError(f"malformed TOML: {e}", path) from None
+    except (UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
+        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+
+
 def _png_chunk(tag: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
 
