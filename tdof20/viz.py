@@ -25,10 +25,23 @@ def depth_to_colour(depth_mm: np.ndarray, vmin: float | None = None, vmax: float
     return np.ascontiguousarray(col)
 
 
+# Kelly's colours of maximum contrast (less the greys), brightest first: neighbours in the list
+# differ in hue, so the first few instances of a frame never share a colour family
+_PALETTE = np.array([
+    (255, 179, 0), (0, 125, 255), (255, 0, 104), (0, 200, 83), (166, 55, 255), (255, 104, 0), (0, 214, 214),
+    (206, 162, 98), (255, 122, 92), (129, 112, 102), (193, 0, 32), (246, 118, 142), (0, 83, 138),
+    (130, 200, 0), (83, 55, 122), (255, 142, 0), (179, 40, 81), (244, 200, 0), (255, 80, 200), (90, 200, 255),
+], np.uint8)
+
+
 def label_colours(n: int) -> np.ndarray:
-    """n distinct bright colours (n,3) uint8."""
-    hsv = np.stack([(np.arange(n) * 37) % 180, np.full(n, 220), np.full(n, 255)], 1).astype(np.uint8)[None]
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
+    """n distinct bright colours (n,3) uint8 (a fixed palette of 20, then repeated)."""
+    return _PALETTE[np.arange(n) % len(_PALETTE)]
+
+
+def object_colour(obj_id: int) -> np.ndarray:
+    """The colour (3,) uint8 of an object id (1..20), the same in every picture."""
+    return _PALETTE[(int(obj_id) - 1) % len(_PALETTE)]
 
 
 def overlay_masks(rgb: np.ndarray, masks: list[np.ndarray], alpha: float = 0.45, contours: bool = True) -> np.ndarray:

@@ -51,10 +51,10 @@ _PLOTS = (("residual_deg", "residual (deg)", "max_residual_deg"),
 # drawing
 # ---------------------------------------------------------------------------------------------
 def _colour(obj_id: int) -> np.ndarray:
-    """A bright colour (3,) uint8 fixed per object id; hues by the golden ratio, so neighbouring
-    and nearby ids look different."""
-    hue = int(180 * ((int(obj_id) * 0.6180339887) % 1.0)) % 180
-    return cv2.cvtColor(np.array([[[hue, 230, 255]]], np.uint8), cv2.COLOR_HSV2RGB)[0, 0]
+    """A bright colour (3,) uint8 fixed per object id (:func:`tdof20.viz.object_colour`)."""
+    from tdof20.viz import object_colour
+
+    return object_colour(obj_id)
 
 
 def _contour_pixels(mask: np.ndarray) -> np.ndarray:
