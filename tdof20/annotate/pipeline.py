@@ -474,19 +474,25 @@ def _pcd(points: np.ndarray) -> "o3d.geometry.PointCloud":
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64).reshape(-1, 3)))
 
 
-def _write_ply_points(path: Path, points: np.ndarray) -> None:
+def _write_ply_points(path: Path, points: np.ndarray, normals: np.ndarray | None = None) -> None:
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    if not o3d.io.write_point_cloud(str(tmp), _pcd(points), write_ascii=False):
+    pc = _pcd(points)
+    if normals is not None and len(normals) == len(points):
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64).reshape(-1, 3))
+    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
         raise TdofError("cannot write the point cloud", path)
     os.replace(tmp, path)
 
 
-def _read_ply_points(path: Path) -> np.ndarray:
+def _read_ply_points(path: Path, with_normals: bool = False):
+    """(N,3) points of a PLY cloud; with ``with_normals`` also its (N,3) normals or None."""
     pc = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(pc.points, np.float64)
     if len(pts) == 0:
         raise TdofError("empty or unreadable point cloud (rerun the reconstruct stage)", path)
-    return pts
+    if not with_normals:
+        return pts
+    return pts, (np.asarray(pc.normals, np.float64) if pc.has_normals() else None)
 
 
 def _T_list(T: np.ndarray) -> list[float]:
@@ -621,7 +627,7 @@ def _stage_reconstruct(ctx: _Ctx) -> dict:
     clusters = []
     for i, c in enumerate(rec.clusters):
         name = f"cluster_{i:03d}.ply"
-        _write_ply_points(d / name, c)
+        _write_ply_points(d / name, c, rec.cluster_normals[i] if i < len(rec.cluster_normals) else None)
         h, r = _shape(c, up, off)
         clusters.append({"file": name, "n_points": int(len(c)), "centroid": [float(x) for x in c.mean(0)],
                          "height_mm": round(h, 3), "radius_mm": round(r, 3), "sha256": _sha_file(d / name)})
@@ -759,7 +765,10 @@ def _stage_model(ctx: _Ctx) -> dict:
                             f"of the lab's CAD models or of the single-object scenes); only single-object scenes "
                             f"build their model from the reconstruction", ctx.raw / "session.json")
         view = np.asarray(meta.get("viewpoints") or [], float).reshape(-1, 3)
-        built = build_model_from_cluster(clusters[0], plane, ctx.cfg.build, viewpoints=view if len(view) else None)
+        # the TSDF's normals tell the two sides of a thin glass wall apart, estimated ones cannot
+        _, normals = _read_ply_points(ctx.rec_dir / meta["clusters"][0]["file"], with_normals=True)
+        built = build_model_from_cluster(clusters[0], plane, ctx.cfg.build, viewpoints=view if len(view) else None,
+                                         normals=normals)
         if ctx.built_dir.exists():
             shutil.rmtree(ctx.built_dir)
         write_models({int(objects[0]): built}, ctx.built_dir)

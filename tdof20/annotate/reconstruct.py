@@ -3,7 +3,7 @@
 Input: the opaque-phase depth of every frame and its pose ``T_ref_frame`` (camera of the frame
 -> camera of arm 0, step 0, from registration). Output: the fused scene (a TSDF volume integrated
 with open3d, extracted as a point cloud and a mesh) in the reference frame, the table plane, and
-one point cluster per object standing on it.
+one point cluster per object standing on it, with the TSDF's normals of its points.
 
 Two details of the fusion keep the surface where the depth puts it (measured on the simulated
 jar single/13, whose wall is 3 mm thick, against the true model; true poses, 240x180 images):
