@@ -85,7 +85,7 @@ class RegistrationConfig:
     icp_dist_factor: float = 2.5              # max correspondence distance = factor * voxel
     icp_iterations: tuple[int, ...] = (20, 15, 15)        # per scale
     normal_radius_mm: float = 12.0            # normals: neighbours within this radius (wide: depth
-    normal_max_nn: int = 60                   # quantisation terraces must not tilt them)
+    normal_max_nn: int = 30                   # quantisation terraces must not tilt them)
     icp_tol_rad: float = 2e-5                 # an ICP level stops when its step turns less than this (0.001 deg)
     icp_tol_mm: float = 2e-3                  # ... and moves less than this (measured: 16 -> 13 s CPU per 40 frames, same accuracy)
     normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud and handed to the
@@ -529,13 +529,23 @@ def _icp_prior(src: _Pyramid, tgt: _Pyramid, prior: np.ndarray, centre: np.ndarr
     S = np.asarray(src.source(n).points)
     tree, Q, N = tgt.tree(n)
     X = S @ T[:3, :3].T + T[:3, 3]
-    d, _ = tree.query(X, distance_upper_bound=dist)
+    d, idx = tree.query(X, distance_upper_bound=dist)
     ok = np.isfinite(d)
     fit = float(ok.mean()) if len(S) else 0.0
     rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
-    info = (REG.get_information_matrix_from_point_clouds(src.source(n), tgt.levels[n], dist, T)
-            if information and len(S) >= 10 else np.eye(6))
-    return T, fit, rmse, np.asarray(info)
+    info = _information(Q[idx[ok]]) if information and len(S) >= 10 else np.eye(6)
+    return T, fit, rmse, info
+
+
+def _information(q: np.ndarray) -> np.ndarray:
+    """(6,6) information matrix of a registration from the target points (M,3) of its inlier
+    correspondences — open3d's GetInformationMatrixFromPointClouds, from the correspondences the
+    ICP already found instead of a second nearest-neighbour search (measured: 19 of 155 s per arm)."""
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    G = np.concatenate([np.stack([zero, z, -y, one, zero, zero], 1), np.stack([-z, zero, x, zero, one, zero], 1),
+                        np.stack([y, -x, zero, zero, zero, one], 1)])
+    return G.T @ G
 
 
 class _Arm:
