@@ -109,19 +109,50 @@ def test_sim_frames(tmp_path):
 
 def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     demo = tmp_path / "demo"
-    res = run("demo", "--out", demo, "--steps", "8", "--arm-positions", "2", "--width", "96", "--height", "72",
-              "--image-size", "48x64", "--epochs", "1", "--device", "cpu")
+    # the smallest session registration handles: 2 arm positions x 12 steps of 5 deg
+    opts = ["--scenes", "single/12", "--steps", "12", "--step-deg", "5", "--arm-positions", "2", "--width", "160",
+            "--height", "120", "--image-size", "48x64", "--epochs", "1", "--device", "cpu"]
+    res = run("demo", "--out", demo, *opts)
     assert res.returncode == 0, res.stderr
-    for f in ("contact_sheet.png", "report.md", "runs/hff6dof_simple/loss.png", "runs/hff6dof_simple/last.pt",
-              "results/hff6dof_simple.csv", "report/scores.json", "report/accuracy_add_s.png"):
+    for f in ("demo.json", "models/models_info.json", "models/obj_000012.ply", "raw/single_12/session.json",
+              "scenes/single_12/scene_gt.json", "scenes/single_12/qa/report.html",
+              "scenes/single_12/work/summary.json", "contact_sheet.png", "report.md", "timings.json",
+              "runs/hff6dof_simple/loss.png", "runs/hff6dof_simple/last.pt", "results/hff6dof_simple.csv",
+              "report/scores.json", "report/accuracy_add_s.png"):
         assert (demo / f).exists(), f
-    assert "report:" in res.stderr + res.stdout and "ADD(S)" in (demo / "report.md").read_text()
+    out = res.stderr + res.stdout
+    for stage in ("1/6: capture", "2/6: annotate", "3/6: dataset", "4/6: train", "5/6: predict", "6/6: score"):
+        assert stage in out, stage
+    assert "report:" in out
+    # the labels come from the annotation pipeline, and it got them right
+    summary = json.loads((demo / "scenes/single_12/work/summary.json").read_text())
+    assert all(e["status"] == "ran" for e in summary["stages"].values())
+    ev = summary["evaluation"]["all"]
+    assert ev["surface_mm"]["median"] < 2.0 and ev["iou_visib"]["median"] > 0.9
+    assert len(json.loads((demo / "dataset/scenes/000012/scene_gt.json").read_text())) == 24
+    report = (demo / "report.md").read_text()
+    assert "ADD(S)" in report and "Annotation" in report and "visible-mask IoU" in report
+    assert f"{ev['iou_visib']['median']:.3f}" in report and f"{ev['surface_mm']['median']:.2f} mm" in report
     scores = json.loads((demo / "report/scores.json").read_text())
     assert scores["all"]["n"] > 0 and 0.0 <= scores["mean"]["add_s"] <= 1.0
+    timings = json.loads((demo / "timings.json").read_text())
+    assert set(timings) == {"capture", "annotate", "dataset", "train", "predict", "score", "total"}
+    # a rerun resumes: every stage is reused
+    mtime = (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime
+    res = run("demo", "--out", demo, *opts)
+    assert res.returncode == 0, res.stderr
+    out = res.stderr + res.stdout
+    assert out.count("up to date") == 6 and "has its 1 epoch already" in out and "newer than the run" in out
+    assert (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime == mtime
+    # other data options on the same folder are refused
+    one_line_error(run("demo", "--out", demo, "--scenes", "single/12", "--steps", "13"), "demo.json", "steps 12 (now 13)")
+    one_line_error(run("demo", "--out", tmp_path / "d2", "--scenes", "multi/08"), "single-object")
+    one_line_error(run("demo", "--out", tmp_path / "d3", "--scenes", "single/99"), "single/99")
+    one_line_error(run("demo", "--out", tmp_path / "d4", "--step-deg", "60"), "--step-deg")
     root, run_dir = demo / "dataset", demo / "runs/hff6dof_simple"
     # train resumes and extends the demo's run; predict and score the other way of voting
     res = run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir, "--image-size", "48x64",
-              "--epochs", "2", "--device", "cpu", "--workers", "0")
+              "--epochs", "2", "--batch-size", "4", "--device", "cpu", "--workers", "0")
     assert res.returncode == 0, res.stderr
     assert json.loads((run_dir / "history.json").read_text())["epochs"][-1]["epoch"] == 2
     res = run("predict", run_dir, "--dataset", root, "--split", "simple", "--out", tmp_path / "r3d.csv",
