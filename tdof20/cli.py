@@ -334,7 +334,7 @@ def annotate_run(raw: Path = typer.Argument(..., help="raw session folder (tdof2
                  config: Optional[Path] = typer.Option(None, "--config", help="TOML options (docs/annotate.md)"),
                  executor: Optional[str] = typer.Option(None, "--executor", help="local (worker processes) or ray"),
                  ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster, e.g. 10.0.0.5:6379"),
-                 workers: Optional[int] = typer.Option(None, "--workers", help="label worker processes (default: cores)"),
+                 workers: Optional[int] = typer.Option(None, "--workers", help="worker processes for registration (one arm each) and labels (default: cores)"),
                  force: bool = typer.Option(False, "--force", help="rerun the chosen stages even when up to date")) -> None:
     """Annotate RAW into a labelled BOP scene in --out: poses, masks, restored depth, QA report."""
     from tdof20.annotate.pipeline import AnnotateConfig, annotate, load_annotate_config, summary_text
