@@ -637,7 +637,7 @@ def load_models(models_dir: str | Path, obj_ids=None) -> dict[int, tuple[np.ndar
 
     d = Path(models_dir)
     if not d.is_dir():
-        raise TdofError("models folder not found (--models: a BOP models folder, obj_XXXXXX.ply in mm + "
+        raise TdofError("models folder not found (--models: a BOP models folder, obj_{id:06d}.ply in mm + "
                         "models_info.json)", d)
     if not (d / MODELS_INFO).exists():
         raise TdofError(f"no {MODELS_INFO} in the models folder (a BOP models folder is expected)", d)

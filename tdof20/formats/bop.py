@@ -518,7 +518,7 @@ def read_models_info(path: str | Path) -> dict[int, dict]:
 
 
 # ---------------------------------------------------------------------------------------------
-# model meshes (obj_XXXXXX.ply)
+# model meshes (obj_{id:06d}.ply)
 # ---------------------------------------------------------------------------------------------
 def model_path(models_dir: str | Path, obj_id: int) -> Path:
     """``<models_dir>/obj_{obj_id:06d}.ply``."""

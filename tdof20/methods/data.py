@@ -74,7 +74,7 @@ def mesh_keypoints(vertices: np.ndarray, faces: np.ndarray, k: int = N_KEYPOINTS
 
 def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None, k: int = N_KEYPOINTS,
                     n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
-    """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_XXXXXX.ply``,
+    """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_{id:06d}.ply``,
     read with trimesh); every object of models_info.json unless ``obj_ids`` is given."""
     from tdof20.formats import read_models_info
     from tdof20.formats.bop import model_path, read_model_mesh
