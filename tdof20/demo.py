@@ -16,7 +16,7 @@ score      ADD(S), 2D projection, AUC -> ``OUT/report/``
 =========  ====================================================================================
 
 and ``OUT/report.md``: the annotation's accuracy beside the pose scores, the stage times, the
-contact sheet, the loss curves. The defaults fit about 7 minutes on 2 CPU cores.
+contact sheet, the loss curves. The defaults take about 1.5 minutes on 2 idle CPU cores (7 on a busy one).
 
 The defaults — ``single/12`` (the vase: trained and scored on) and ``multi/08`` (annotated with the
 CAD models and matched to its clusters; the TDoF20-hard test part), 4 arm positions × 16 steps
