@@ -46,6 +46,7 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, dumps_json, read_png, read_scene
+from tdof20.formats.bop import model_path, read_model_mesh
 from tdof20.geometry.transforms import invert
 
 __all__ = ["evaluate_scene", "evaluate_command", "model_centre", "TARGETS"]
@@ -99,12 +100,6 @@ def _open(path: str | Path, what: str) -> BopScene:
         raise TdofError(f"not an annotated scene: no {' or '.join(missing)} (pass the folder "
                         f"'tdof20 annotate --out' wrote)", p)
     return read_scene(p)
-
-
-def _load_mesh(models_dir: Path, obj_id: int) -> tuple[np.ndarray, np.ndarray]:
-    from tdof20.formats.bop import model_path, read_model_mesh
-
-    return read_model_mesh(model_path(models_dir, obj_id))
 
 
 class _Model:
@@ -241,7 +236,7 @@ def evaluate_scene(scene_dir: str | Path, truth_dir: str | Path, max_frames: int
 
     def model(store, scene, obj_id):
         if obj_id not in store:
-            store[obj_id] = _Model(*_load_mesh(scene.path / "models", obj_id), n_points, seed, distance)
+            store[obj_id] = _Model(*read_model_mesh(model_path(scene.path / "models", obj_id)), n_points, seed, distance)
         return store[obj_id]
 
     # match instances per image

@@ -53,7 +53,6 @@ Models folder (:func:`write_models`), every file written atomically::
 from __future__ import annotations
 
 import io
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path

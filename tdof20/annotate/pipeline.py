@@ -495,6 +495,13 @@ def _read_ply_points(path: Path, with_normals: bool = False):
     return pts, (np.asarray(pc.normals, np.float64) if pc.has_normals() else None)
 
 
+def _meshes(models_dir: Path, obj_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """{obj_id: (V, F)} of a models folder, checked by :func:`~tdof20.annotate.modelbuild.load_models`."""
+    from tdof20.annotate.modelbuild import load_models
+
+    return {o: (V, F) for o, (V, F, _) in load_models(models_dir, obj_ids).items()}
+
+
 def _T_list(T: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(T, float).reshape(16)]
 
@@ -745,10 +752,7 @@ def _stage_model(ctx: _Ctx) -> dict:
     plane = np.asarray(meta["plane"], float)
     objects = ctx.session.info.obj_ids
     if ctx.models_dir is not None:
-        from tdof20.annotate.modelbuild import load_models
-
-        loaded = load_models(ctx.models_dir, sorted(set(objects)))
-        models = {o: (np.asarray(v[0], float), np.asarray(v[1])) for o, v in loaded.items()}
+        models = _meshes(ctx.models_dir, sorted(set(objects)))
         if len(clusters) < len(objects):
             raise TdofError(f"{len(objects)} objects in session.json but the reconstruction split the scene into "
                             f"{len(clusters)} clusters (objects touching? try a smaller reconstruct.cluster_eps_mm)",
@@ -796,15 +800,12 @@ def _stage_place(ctx: _Ctx) -> dict:
         if md is None or not Path(md).is_dir():
             raise TdofError("the model stage used a models folder that is not there now: pass --models", ctx.fits_file)
         md = Path(md)
-        from tdof20.annotate.modelbuild import load_models
-
         obj_ids = sorted({int(e["obj_id"]) for e in fits["objects"]})
-        loaded = load_models(md, obj_ids)
-        samples = _model_samples({o: (np.asarray(v[0], float), np.asarray(v[1])) for o, v in loaded.items()},
-                                 pc.fit_samples)
+        meshes = _meshes(md, obj_ids)
+        samples = _model_samples(meshes, pc.fit_samples)
         for e in fits["objects"]:
             o, j = int(e["obj_id"]), int(e["cluster"])
-            V = np.asarray(loaded[o][0], float)
+            V = meshes[o][0]
             f = fit_model(samples[o], clusters[j], ctx.cfg.fit, init=_T_arr(e["T_ref_model"]))
             T, tilt = f.T_ref_model, None
             note = ""
@@ -859,13 +860,10 @@ def _stage_place(ctx: _Ctx) -> dict:
 
 
 def _stage_label(ctx: _Ctx) -> dict:
-    from tdof20.annotate.modelbuild import load_models
-
     reg = RegistrationResult.load(ctx.reg_file)
     pl = read_json(ctx.placements_file)["placements"]
     obj_ids = sorted({int(p["obj_id"]) for p in pl})
-    loaded = load_models(ctx.out / "models", obj_ids)
-    models = {o: (np.asarray(v[0], float), np.asarray(v[1])) for o, v in loaded.items()}
+    models = _meshes(ctx.out / "models", obj_ids)
     info = ctx.session.info
     write_json(ctx.out / "scene_info.json", {
         "scene_id": info.scene_id, "n_arms": info.n_arms, "steps": info.steps, "step_deg": info.step_deg,

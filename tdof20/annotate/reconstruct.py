@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tdof20.geometry import PinholeCamera, invert, transform_points
+from tdof20.geometry import PinholeCamera, invert
 from tdof20.o3d import o3d
 
 

@@ -948,11 +948,9 @@ class _ArmJob:
         self.session_dir, self.cfg, self.sign = Path(session_dir), cfg, sign
 
     def __call__(self, arm: int):
-        from tdof20.progress import progress as quiet
-
         session = RawSession.open(self.session_dir)
         t = time.perf_counter()
-        with quiet(False) as prog:
+        with _progress(False) as prog:
             A, poses, fr, cloud = _register_arm(session, self.cfg, arm, self.sign, prog)
         return arm, A, poses, fr, np.asarray(cloud.points), np.asarray(cloud.normals), time.perf_counter() - t
 

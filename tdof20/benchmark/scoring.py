@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.bop import MODELS_INFO, read_models_info
+from tdof20.formats.bop import MODELS_INFO, model_path, read_model_mesh, read_models_info
 from tdof20.formats.io import read_json
 from tdof20.benchmark import metrics as M
 from tdof20.benchmark.results import Results, check_against_dataset, read_results
@@ -71,12 +71,6 @@ class SceneData:
 
     def count(self, im_id: int, obj_id: int) -> int:
         return sum(1 for o, _, _ in self.gt.get(im_id, ()) if o == obj_id)
-
-
-def _load_points(path: Path) -> np.ndarray:
-    from tdof20.formats.bop import read_model_mesh
-
-    return read_model_mesh(path, need_faces=False)[0]
 
 
 def _numbers(path: Path, values: list, n: int, what: str) -> np.ndarray:
@@ -185,7 +179,7 @@ class DatasetView:
         if obj_id not in self.models:
             e = self.models_info[obj_id]
             sym = bool(e.get("symmetries_continuous")) or bool(e.get("symmetries_discrete"))
-            pts = _load_points(self.models_dir / f"obj_{obj_id:06d}.ply")
+            pts = read_model_mesh(model_path(self.models_dir, obj_id), need_faces=False)[0]
             self.models[obj_id] = M.ModelPoints(pts, float(e["diameter"]), sym)
         return self.models[obj_id]
 
