@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.geometry import rotation_matrix
 from tdof20.o3d import o3d
@@ -87,6 +88,13 @@ class ModelBuildConfig:
     n_samples: int = 10000             # Monte-Carlo samples written with the model
     n_keypoints: int = 9
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "build", positive=(
+            "min_points", "normal_knn", "poisson_depth", "poisson_samples_per_node", "poisson_point_weight",
+            "poisson_threads", "base_band_mm", "base_max_gap_mm", "trim_mm", "target_faces", "sym_tol_mm",
+            "sym_samples", "sym_open_deg", "n_samples", "n_keypoints"), non_negative=("seed",),
+            fraction=("sym_max_fraction",))
 
 
 @dataclass

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tdof20.config import check_ranges
 from tdof20.geometry import transform_points
 from tdof20.o3d import o3d
 
@@ -20,6 +21,10 @@ class ModelFitConfig:
     model_samples: int = 20000
     ransac_iters: int = 100000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "fit", positive=("voxel_mm", "icp_mm", "model_samples", "ransac_iters"),
+                     non_negative=("seed",))
 
 
 @dataclass

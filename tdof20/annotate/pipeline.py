@@ -57,13 +57,13 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import fcntl
 import hashlib
 import json
 import math
 import os
 import shutil
 import time
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -75,10 +75,9 @@ from tdof20.annotate.models import ModelFitConfig, fit_model
 from tdof20.annotate.modelbuild import ModelBuildConfig
 from tdof20.annotate.reconstruct import ReconstructionConfig, reconstruct
 from tdof20.annotate.registration import RegistrationConfig, RegistrationResult, register_session
-from tdof20.capture.config import _convert, _fail
+from tdof20.config import config_from_data, load_config_file
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, atomic_write_bytes, read_json, write_json
-from tdof20.formats.io import read_toml
 from tdof20.formats.bop import read_models_info, write_models_info
 from tdof20.o3d import o3d
 
@@ -179,68 +178,15 @@ def _jsonable(x: Any) -> Any:
     return json.loads(json.dumps(x, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def _value(value: Any, tp: Any, src: str, where: str) -> Any:
-    """capture.config's converter, plus ``X | None`` (TOML has no null: the value is an X) and a
-    bare ``tuple`` (numbers)."""
-    args = typing.get_args(tp)
-    if typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType")) and type(None) in args:
-        inner = [a for a in args if a is not type(None)]
-        return _value(value, inner[0], src, where)
-    if tp is tuple:
-        if not isinstance(value, (list, tuple)):
-            _fail(src, where, f"must be a list, got {value!r}")
-        return tuple(_convert(v, float, src, f"{where}[{i}]") for i, v in enumerate(value))
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            _fail(src, where, f"must be a table, got {type(value).__name__}")
-        return _section(tp, value, src, where)
-    return _convert(value, tp, src, where)
-
-
-def _section(cls: type, data: dict, src: str, where: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls) if f.name != "source"]
-    for key in data:
-        if key not in names:
-            _fail(src, "", f"unknown option '{where}.{key}' (known: {', '.join(sorted(names))})")
-    kw = {k: _value(v, hints[k], src, f"{where}.{k}") for k, v in data.items()}
-    try:
-        return cls(**kw)
-    except TdofError as e:
-        _fail(src, f"[{where}]", str(e))
-    except (TypeError, ValueError) as e:
-        _fail(src, f"[{where}]", f"invalid options ({e})")
-
-
 def annotate_config_from_dict(data: dict, source: str = "") -> AnnotateConfig:
     """An :class:`AnnotateConfig` from a parsed TOML document (strict: an unknown table or key is
     a TdofError naming ``source`` and the key)."""
-    if not isinstance(data, dict):
-        _fail(source, "", "must be a TOML document of tables")
-    known = _SECTIONS + _SCALARS
-    for key in data:
-        if key not in known:
-            _fail(source, "", f"unknown option '{key}' (known: {', '.join(known)})")
-    hints = typing.get_type_hints(AnnotateConfig)
-    kw: dict[str, Any] = {}
-    for key, value in data.items():
-        if key in _SECTIONS:
-            if not isinstance(value, dict):
-                _fail(source, key, f"must be a table [{key}], got {type(value).__name__}")
-            kw[key] = _section(hints[key], value, source, key)
-        else:
-            kw[key] = _value(value, hints[key], source, key)
-    try:
-        return AnnotateConfig(source=source, **kw)
-    except TdofError as e:
-        _fail(source, "", str(e))
+    return config_from_data(AnnotateConfig, data, source)
 
 
 def load_annotate_config(path: str | Path) -> AnnotateConfig:
     """Read and check a TOML annotation config; any problem is one line naming the file."""
-    path = Path(path)
-    data = read_toml(path)
-    return annotate_config_from_dict(data, str(path))
+    return load_config_file(AnnotateConfig, path)
 
 
 def parse_stages(spec: str | Iterable[str] | None) -> tuple[str, ...]:
@@ -968,43 +914,73 @@ def _summary(ctx: _Ctx, state: _State, run: dict, warnings: list[str]) -> dict:
 # the pipeline
 # ---------------------------------------------------------------------------------------------
 class _Lock:
-    """``work/.lock`` holding the pid: one annotate run per scene folder at a time."""
+    """``work/.lock``: one annotate run per scene folder at a time. An exclusive ``flock`` on the
+    file is the lock (atomic, and released by the kernel when the holder dies, however it dies);
+    the pid written into it only serves the message a second run prints. The file is never
+    deleted: a run that unlinked it could let a third run lock a new file beside a live holder."""
 
     def __init__(self, work: Path):
         self.path = work / ".lock"
+        self.fd: int | None = None
 
     def __enter__(self) -> "_Lock":
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        for _ in range(2):
+        fd = os.open(self.path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
             try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                try:
-                    pid = int(self.path.read_text().strip() or 0)
-                except (OSError, ValueError):
-                    pid = 0
-                if pid and pid != os.getpid() and _alive(pid):
-                    raise TdofError(f"another annotate run (pid {pid}) is writing this folder; wait for it, or "
-                                    f"delete the lock file if it is gone", self.path) from None
-                self.path.unlink(missing_ok=True)   # left by a run that died
-                continue
-            with os.fdopen(fd, "w") as f:
-                f.write(str(os.getpid()))
-            return self
-        raise TdofError("cannot take the lock", self.path)
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            finally:
+                os.close(fd)
+            who = f" (pid {pid})" if pid.isdigit() else ""
+            raise TdofError(f"another annotate run{who} is writing this folder; wait for it to finish",
+                            self.path) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        self.fd = fd
+        return self
 
     def __exit__(self, *exc: Any) -> None:
-        self.path.unlink(missing_ok=True)
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)
+            os.close(self.fd)   # closing releases the flock
+            self.fd = None
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+def _session_identity(session: RawSession) -> dict:
+    """What makes a raw session this one capture: its scene and the checksums of its first
+    journalled frame (a resumed capture, an edited session.json or a moved folder keep it)."""
+    entries = sorted(session.entries, key=lambda e: e.t) if session.entries else []
+    first = entries[0] if entries else None
+    return {"scene_id": session.info.scene_id,
+            "first_frame": None if first is None else {"key": list(first.key), **dict(first.sha256)}}
+
+
+def _clear_scene(out: Path) -> None:
+    """Remove everything an annotate run wrote into ``out`` (for ``--force`` over another session's
+    annotation), keeping ``work/.lock`` (held by this run)."""
+    for p in out.iterdir():
+        if p.name == WORK and p.is_dir():
+            for q in p.iterdir():
+                if q.name != ".lock":
+                    shutil.rmtree(q) if q.is_dir() and not q.is_symlink() else q.unlink()
+        elif p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+
+
+def _remove_stale_temp_files(out: Path) -> int:
+    """Delete the temporary files an interrupted run left in ``out`` (atomic writes' ``.NAME.*.tmp``,
+    the mesh's ``*.tmp.ply``); only called while this run holds the folder's lock."""
+    n = 0
+    for root, _dirs, files in os.walk(out):
+        for name in files:
+            if (name.startswith(".") and name.endswith(".tmp")) or name.endswith(".tmp.ply"):
+                Path(root, name).unlink(missing_ok=True)
+                n += 1
+    return n
 
 
 def annotate(raw_dir: str | Path, out_dir: str | Path, models_dir: str | Path | None = None,
@@ -1043,6 +1019,20 @@ def annotate(raw_dir: str | Path, out_dir: str | Path, models_dir: str | Path | 
     warnings: list[str] = []
     with _Lock(ctx.work):
         state = _State(ctx.work, raw.resolve())
+        identity = _session_identity(session)
+        recorded = state.data.get("session")
+        if recorded is not None and recorded != identity:
+            if not force:
+                raise TdofError(f"holds the annotation of another session ({recorded.get('scene_id')} from "
+                                f"{state.data.get('raw_recorded', 'elsewhere')}); choose another --out, or give "
+                                f"--force to replace it", out)
+            _clear_scene(out)
+            state = _State(ctx.work, raw.resolve())
+        state.data["session"] = identity
+        state.data["raw_recorded"] = str(raw.resolve())
+        removed = _remove_stale_temp_files(out)
+        if removed:
+            warnings.append(f"removed {removed} temporary file(s) left by an interrupted run")
         for stage in STAGES:
             if stage not in chosen:
                 run[stage] = {"status": "not requested"}

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tdof20.config import check_ranges
 from tdof20.geometry import PinholeCamera, invert
 from tdof20.o3d import o3d
 
@@ -43,6 +44,12 @@ class ReconstructionConfig:
     min_weight: float = 2.0           # a surface voxel must be seen by this many frames
     block_count: int = 40000          # hash-map capacity of the TSDF grid
     min_cluster_points: int = 300     # smaller clusters are noise
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "reconstruct", positive=("voxel_mm", "sdf_trunc_mm", "depth_max_mm", "plane_dist_mm",
+                                                    "crop_radius_mm", "cluster_eps_mm", "cluster_min_points",
+                                                    "min_weight", "block_count", "min_cluster_points"),
+                     non_negative=("above_table_mm",))
 
 
 @dataclass

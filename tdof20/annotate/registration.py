@@ -60,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_json, write_json
 from tdof20.formats.session import RawSession
@@ -141,6 +142,22 @@ class RegistrationConfig:
     arm_prior_sigma_mm: float = 10.0
     max_arm_correction_deg: float = 5.0
     max_arm_correction_mm: float = 50.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "register", positive=(
+            "voxel_sizes_mm", "icp_dist_factor", "icp_iterations", "normal_radius_mm", "normal_max_nn",
+            "icp_tol_rad", "icp_tol_mm", "normal_voxel_mm", "min_depth_mm", "max_depth_mm", "plane_dist_mm",
+            "plane_prior_max_deg", "plane_frames", "crop_height_mm", "crop_radius_mm", "max_crop_radius_mm",
+            "min_points", "max_source_points", "pass1_levels", "prior_sigma_deg", "prior_sigma_mm",
+            "prior_sigma_r_mm", "pass1_edge_max_deg", "pass1_edge_max_mm", "edge_max_deg", "edge_max_mm",
+            "model_voxel_mm", "frame_icp_dist_mm", "max_rmse_mm", "max_residual_deg", "max_residual_mm",
+            "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm"),
+            non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
+                          "pass2_first_level"),
+            fraction=("plane_window", "plane_max_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
+        if self.max_depth_mm <= self.min_depth_mm:
+            raise TdofError(f"register.max_depth_mm ({self.max_depth_mm}) must be above register.min_depth_mm "
+                            f"({self.min_depth_mm})")
 
     def to_dict(self) -> dict:
         d = asdict(self)
