@@ -98,16 +98,7 @@ def test_a_jpeg_named_png_is_skipped_not_copied(tmp_path):
             lines[i] = json.dumps(d)
     (raw / "journal.jsonl").write_text("\n".join(lines) + "\n")
 
-    truth = read_scene(raw / "truth")
-    T = truth_T_ref_frame(raw)
-    frames = {(0, k): T[0, k] for k in range(3)}
-    places = []
-    for g, ent in enumerate(truth.gt[0]):
-        R, t = truth.pose(0, g)
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        places.append((ent["obj_id"], M))
-    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in places}
+    frames, places, models = _truth_labels(raw)
     out = tmp_path / "scene"
     summary = label_scene(raw, out, frames, places, models, LabelConfig(workers=1), progress=False)
     skipped = {sk["im_id"]: sk["reason"] for sk in summary["skipped"]}
@@ -115,6 +106,44 @@ def test_a_jpeg_named_png_is_skipped_not_copied(tmp_path):
     assert not (out / "rgb" / "000001.png").exists()
     assert (out / "rgb" / "000000.png").exists() and (out / "rgb" / "000002.png").exists()
     assert "1" not in read_json(out / "scene_gt.json")
+
+
+def _truth_labels(raw: Path):
+    """T_ref_frames, placements and models of a simulated session from its exact truth."""
+    truth = read_scene(raw / "truth")
+    T = truth_T_ref_frame(raw)
+    frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
+    places = []
+    for g, ent in enumerate(truth.gt[0]):
+        R, t = truth.pose(0, g)
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, t
+        places.append((ent["obj_id"], M))
+    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in places}
+    return frames, places, models
+
+
+# ------------------------------------------------------------------------------------- the label gate
+def test_the_label_gate_writes_true_labels_and_refuses_wrong_ones(tmp_path):
+    raw = _capture(tmp_path / "raw", "multi/08", steps=4)
+    frames, places, models = _truth_labels(raw)
+    good = label_scene(raw, tmp_path / "good", frames, places, models, LabelConfig(workers=1), progress=False)
+    assert good["labelled"] == 4 and not good["skipped"]
+    assert good["gate"]["instances_failed"] == 0 and good["gate"]["agree"]["min"] > 0.9
+    # one object placed 20 mm off (about a sixth of its diameter): no frame gets that label
+    wrong = [(o, M.copy()) for o, M in places]
+    wrong[1][1][:3, 3] += [20.0, 0.0, 0.0]
+    out = tmp_path / "wrong"
+    bad = label_scene(raw, out, frames, wrong, models, LabelConfig(workers=1), progress=False)
+    assert bad["labelled"] == 0 and len(bad["skipped"]) == 4
+    assert all(sk["reason"].startswith(f"label gate: object {wrong[1][0]} (gt 1) disagrees with the opaque depth")
+               for sk in bad["skipped"])
+    assert bad["gate"]["frames_refused"] == 4
+    assert not list((out / "rgb").glob("*.png")) and not (out / "scene_gt.json").exists()
+    # the gate off writes them (what the gate prevents)
+    off = label_scene(raw, tmp_path / "off", frames, wrong, models, LabelConfig(workers=1, gate=False),
+                      progress=False)
+    assert off["labelled"] == 4
 
 
 # ------------------------------------------------------------------------------------- the lock

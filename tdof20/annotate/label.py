@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from tdof20.annotate.executors import EXECUTORS, process_cache, resolve_workers, run_chunks
+from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes,
                             decode_png, dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
@@ -78,6 +79,14 @@ class LabelConfig:
         instead; a 1-pixel splat grows every silhouette by a pixel: IoU 0.93 at 640x480).
     verify: check each copied file against the journal's sha256 (a colour image is then not
         decoded: the checksum proves it is the file the capture wrote); False decodes it instead.
+    gate: check every label against the frame's own opaque depth before it is written (independent
+        of the registration and placement that made it): per object, on its visible pixels (eroded
+        by one pixel) with opaque depth, the share within ``gate_tol_mm`` of the model's surface
+        must be at least ``gate_min_agree`` and the share where the opaque depth lies more than
+        ``gate_tol_mm`` behind the model ("see-through": nothing stands where the label puts the
+        object) at most ``gate_max_see_through``; an object with fewer than ``gate_min_pixels``
+        such pixels is not judged. A frame with an object that fails is not written (skipped,
+        with the figures in its reason); a frame without an opaque twin is written unchecked.
     """
 
     method: str = "raycast"
@@ -90,6 +99,11 @@ class LabelConfig:
     samples: int | None = None
     splat_px: int = 0
     verify: bool = True
+    gate: bool = True
+    gate_tol_mm: float = 6.0
+    gate_min_pixels: int = 30
+    gate_min_agree: float = 0.6
+    gate_max_see_through: float = 0.2
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -108,6 +122,8 @@ class LabelConfig:
             raise TdofError(f"samples must be >= 1, got {self.samples}")
         if int(self.splat_px) < 0:
             raise TdofError(f"splat_px must be >= 0, got {self.splat_px}")
+        check_ranges(self, "label", positive=("gate_tol_mm", "gate_min_pixels"),
+                     fraction=("gate_min_agree", "gate_max_see_through"))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -290,6 +306,17 @@ class _LabelJob:
         t2 = time.perf_counter()
 
         cam = st.camera
+        gate = None
+        if self.cfg.gate and opaque is not None:
+            exact = lab if self.cfg.method == "raycast" else st.raycaster.render(poses)
+            gate = gate_check(exact, opaque.astype(np.float32) * np.float32(cam.depth_scale), self.cfg)
+            failed = [(g, poses[g][0], c) for g, c in enumerate(gate) if c["ok"] is False]
+            if failed:
+                res.update(status="skipped", gate=gate, reason="label gate: " + "; ".join(
+                    f"object {o} (gt {g}) disagrees with the opaque depth: {c['agree']:.0%} of {c['pixels']} "
+                    f"pixels within {self.cfg.gate_tol_mm:g} mm, {c['see_through']:.0%} see through it"
+                    for g, o, c in failed))
+                return res
         hit = lab.visible >= 0
         restored = np.zeros((cam.height, cam.width), np.uint16) if opaque is None else opaque.copy()
         restored[hit] = cam.mm_to_depth(lab.depth[hit])
@@ -324,10 +351,35 @@ class _LabelJob:
                 g += 1
         t4 = time.perf_counter()
         res.update(status="labelled", camera=camera, gt=gt, gt_info=gt_info, compare=cmp,
-                   opaque=opaque_bytes is not None,
+                   opaque=opaque_bytes is not None, gate=gate,
                    times={"read": t1 - t0, "render": t2 - t1, "labels": t3 - t2, "write": t4 - t3,
                           "cpu": time.process_time() - c0})
         return res
+
+
+def gate_check(lab, opaque_mm: np.ndarray, cfg: LabelConfig) -> list[dict]:
+    """The label gate's figures per instance (see :class:`LabelConfig`): ``pixels`` (visible,
+    eroded by one pixel, with opaque depth), ``agree`` (share within ``gate_tol_mm`` of the
+    model's ray-cast depth), ``see_through`` (share where the opaque depth is more than
+    ``gate_tol_mm`` behind it), ``median_mm`` (median |difference|) and ``ok`` (True, False, or
+    None when too few pixels to judge)."""
+    out = []
+    kernel = np.ones((3, 3), np.uint8)
+    tol = float(cfg.gate_tol_mm)
+    for i in range(len(lab.full)):
+        vis = cv2.erode((lab.visible == i).view(np.uint8), kernel).view(bool)
+        pix = vis & (opaque_mm > 0)
+        n = int(np.count_nonzero(pix))
+        if n < cfg.gate_min_pixels:
+            out.append({"pixels": n, "agree": None, "see_through": None, "median_mm": None, "ok": None})
+            continue
+        dz = opaque_mm[pix] - lab.depth[pix]
+        agree = float(np.mean(np.abs(dz) <= tol))
+        see = float(np.mean(dz > tol))
+        out.append({"pixels": n, "agree": round(agree, 4), "see_through": round(see, 4),
+                    "median_mm": round(float(np.median(np.abs(dz))), 3),
+                    "ok": agree >= cfg.gate_min_agree and see <= cfg.gate_max_see_through})
+    return out
 
 
 def _png_size(data: bytes, path: Path, kind: str) -> tuple[int, int]:
@@ -585,11 +637,19 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     times: dict[str, float] = {}
     t_run, cpu_run = time.perf_counter(), time.process_time()
     t_first, n_first = None, 0
+    gate_agree: list[float] = []
+    gate_failed = gate_unjudged = 0
     try:
         for results in run_chunks(job, chunks, executor=cfg.executor, workers=cfg.workers,
                                   ray_address=cfg.ray_address, progress=progress, description="labels",
                                   size=len, unit="fr"):
             for r in results:
+                for c in r.get("gate") or ():
+                    if c["ok"] is not None:
+                        gate_agree.append(c["agree"])
+                        gate_failed += c["ok"] is False
+                    else:
+                        gate_unjudged += 1
                 if r["status"] != "labelled":
                     skipped.append({k: r[k] for k in ("im_id", "arm", "step", "reason")})
                     if js.has_any(r["im_id"]):  # an earlier run's labels of a frame now unreadable
@@ -635,6 +695,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         "worker_seconds": {k: round(v, 3) for k, v in times.items()},
         "main_cpu_seconds": round(cpu_main, 3),
         "comparison": comparison,
+        "gate": {"enabled": cfg.gate, "instances_checked": len(gate_agree), "instances_failed": gate_failed,
+                 "instances_unjudged": gate_unjudged, "agree": _stats(gate_agree),
+                 "frames_refused": sum(1 for sk in skipped if sk["reason"].startswith("label gate:"))},
     }
 
 
