@@ -176,6 +176,7 @@ _T_lastrow = _T_ok.copy()
 _T_lastrow[3, 0] = 0.5
 _T_reflect = _T_ok.copy()
 _T_reflect[:3, 0] *= -1
+_HE_metres = make_T(rotation_matrix([0, 0, 1], 0.05), [0.0, 0.06, 0.045])  # the bracket in metres
 
 
 @pytest.mark.parametrize("path,value,expect", [
@@ -196,6 +197,8 @@ _T_reflect[:3, 0] *= -1
     (("arm_positions", 0, "T_base_tcp"), list(_T_ok.reshape(-1))[:12], "must be 16 numbers"),
     (("arm_positions", 1, "T_base_tcp"), list(_T_metres.reshape(-1)), "looks like metres, millimetres expected"),
     (("hand_eye", "T_tcp_cam"), list(_T_scaled.reshape(-1)), "hand_eye.T_tcp_cam is not a rigid transform"),
+    (("hand_eye", "T_tcp_cam"), list(_HE_metres.reshape(-1)),
+     "hand_eye.T_tcp_cam translation has length 0.075: looks like metres, millimetres expected"),
     (("arm_positions",), [], "arm_positions must be a non-empty list"),
     (("scene_id",), "multi/21", "scene_id must look like"),
     (("scene_id",), "multi/8", "scene_id must look like"),
@@ -221,6 +224,14 @@ def test_session_validation(tmp_path, path, value, expect):
     assert "session.json" in msg and expect in msg, msg
     assert "\n" not in msg
     assert p.read_bytes() == before
+
+
+def test_hand_eye_in_mm_and_zero_translation_pass(tmp_path):
+    for t in ([0.0, 0.0, 0.0], [0.0, 6.0, 4.5], [1.0, 0.0, 0.0]):
+        d = session_dict()
+        d["hand_eye"]["T_tcp_cam"] = list(make_T(np.eye(3), t).reshape(-1))
+        write_raw(tmp_path, d)
+        np.testing.assert_allclose(read_session(tmp_path).T_tcp_cam[:3, 3], t)
 
 
 def test_single_scene_holds_one_object(tmp_path):
@@ -362,8 +373,9 @@ def test_verify_detects_tampered_file(session_dir):
     # a wrong-size image
     small = np.zeros((H // 2, W // 2), np.uint16)
     (session_dir / e.depth).write_bytes(encode_png(small))
-    assert any("session camera is 32x24" in x for x in s.verify_file(e))
-    with pytest.raises(TdofError, match="session camera is 32x24"):
+    size = "depth image is 16x12 pixels but session.json's camera is 32x24"
+    assert any(size in x for x in s.verify_file(e))
+    with pytest.raises(TdofError, match=size):
         s.load_depth("opaque", 1, 2)
 
 
@@ -432,7 +444,7 @@ def test_journal_round_trip(tmp_path):
     assert JournalEntry.from_dict(entries[1].to_dict()) == entries[1]
 
 
-def test_journal_truncated_last_line_ignored(tmp_path):
+def test_journal_truncated_last_line_ignored(tmp_path, capsys):
     for i in range(2):
         append_journal(tmp_path, _entry(i))
     jp = tmp_path / "journal.jsonl"
@@ -440,16 +452,53 @@ def test_journal_truncated_last_line_ignored(tmp_path):
     with open(jp, "ab") as f:
         f.write(full[:25].encode())
     before = jp.read_bytes()
-    with pytest.warns(UserWarning, match=r"journal\.jsonl.*line 3"):
-        back = read_journal(tmp_path)
+    back = read_journal(tmp_path)
+    said = capsys.readouterr().err
+    assert said.count("\n") == 1 and "journal.jsonl: line 3 is incomplete" in said
     assert [e.step for e in back] == [0, 1]
     assert jp.read_bytes() == before
-    # the next append cuts the broken tail off, so the new line stands on its own
-    with pytest.warns(UserWarning, match="incomplete"):
-        append_journal(tmp_path, _entry(5))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert [e.step for e in read_journal(tmp_path)] == [0, 1, 5]
+    # the next append cuts the broken tail off, so the new line stands on its own (already said)
+    append_journal(tmp_path, _entry(5))
+    assert [e.step for e in read_journal(tmp_path)] == [0, 1, 5]
+    assert capsys.readouterr().err == ""
+
+
+_GOOD = json.dumps(_entry(1).to_dict())
+
+
+@pytest.mark.parametrize("tail", [
+    _GOOD[:30].encode(),                        # torn, no newline (a crash mid-write)
+    _GOOD[:30].encode() + b"\n",                # torn, newline-terminated (issue 11, F3)
+    _GOOD[:30].encode() + b"\n\n  \n",          # torn, then blank lines
+    b"\x00" * 40 + b"\n",                        # a block of zeros a power cut can leave
+    _GOOD[:30].encode() + b"\xff\xfe",           # torn inside a multi-byte character
+    _GOOD.encode(),                             # complete, newline missing: kept
+    _GOOD.encode() + b"\n\n",                    # complete, blank lines after: kept
+    b"",                                        # nothing after the good lines
+])
+def test_journal_reader_and_appender_agree_on_the_last_line(tmp_path, tail):
+    """One rule: what read_journal leaves out is exactly what append_journal cuts off."""
+    append_journal(tmp_path, _entry(0))
+    with open(tmp_path / "journal.jsonl", "ab") as f:
+        f.write(tail)
+    before = read_journal(tmp_path)
+    append_journal(tmp_path, _entry(2))
+    after = read_journal(tmp_path)
+    assert after == before + [_entry(2)]
+    assert [e.line for e in after][-1] == len((tmp_path / "journal.jsonl").read_bytes().rstrip().split(b"\n"))
+    assert all(json.loads(ln) for ln in (tmp_path / "journal.jsonl").read_text().split("\n") if ln.strip())
+
+
+def test_journal_valid_json_last_line_is_no_tear(tmp_path):
+    """A last line that is JSON but no entry is an edit, not an interrupted write: an error, before
+    and after an append (neither side drops it)."""
+    append_journal(tmp_path, _entry(0))
+    with open(tmp_path / "journal.jsonl", "ab") as f:
+        f.write(b"[1, 2, 3]\n")
+    for _ in range(2):
+        with pytest.raises(TdofError, match=r"journal\.jsonl: line 2: a journal entry must be a JSON object"):
+            read_journal(tmp_path)
+        append_journal(tmp_path, _entry(1))
 
 
 def test_journal_last_line_missing_newline_is_kept(tmp_path):
@@ -465,8 +514,8 @@ def test_journal_malformed_middle_line(tmp_path):
     append_journal(tmp_path, _entry(0))
     jp = tmp_path / "journal.jsonl"
     with open(jp, "ab") as f:
-        f.write(b"{not json}\n")  # a complete line, but garbage: append leaves it alone
-    append_journal(tmp_path, _entry(2))
+        f.write(b"{not json}\n" + json.dumps(_entry(1).to_dict()).encode() + b"\n")  # garbage, then a line
+    append_journal(tmp_path, _entry(2))  # only a torn LAST line is cut: this one stays
     assert jp.read_text().splitlines()[1] == "{not json}"
     with pytest.raises(TdofError) as ei:
         read_journal(tmp_path)

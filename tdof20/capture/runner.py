@@ -5,13 +5,17 @@ appended and fsync'ed; a run on a folder holding part of the same session resume
 it stopped, taking again every planned frame that is not journalled or whose files are missing or
 fail their checksum. A device failure after the configured retries, Ctrl-C or SIGTERM stop the run
 cleanly: motion stopped, journal consistent, a message saying what failed and the command that
-resumes. A kill -9 at any moment loses at most the frame in flight.
+resumes. A kill -9 at any moment loses at most the frame in flight: the torn journal line or the
+temporary files it may leave are cleaned up by the resume. The output folder is checked (a folder,
+writable) before any device connects.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -27,10 +31,12 @@ from tdof20.capture.plan import check_workspace, session_info
 from tdof20.capture.rig import Rig, build_rig
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, SessionInfo, read_session, write_frame, write_session
+from tdof20.formats.session import SESSION_FILE, TEMP_FILE_RE, depth_units_problem, stale_temp_files
 from tdof20.progress import console, progress
 
 T = TypeVar("T")
 LOG_FILE = "capture.log"
+PROBE_PREFIX = ".write-check."  # check_output's test file (removed at once; a kill may leave it)
 
 
 class CaptureInterrupted(Exception):
@@ -91,9 +97,39 @@ def _logger(out: Path) -> logging.Logger:
     return log
 
 
+def check_output(out: Path) -> None:
+    """Refuse an output folder that cannot hold a session, before any device connects or moves:
+    ``out`` (or a folder above it) is a file, or the folder cannot be created or written. Creates
+    the folder when it does not exist."""
+    if out.exists() and not out.is_dir():
+        raise TdofError("--out is a file, not a folder: choose a folder for the session", out)
+    above = out.parent
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if above.exists() and not above.is_dir():
+        raise TdofError(f"cannot create the session folder: {above} is a file, not a folder", out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        # a real write, not a permission-bit check: the bits do not stop root, a read-only mount does
+        fd, probe = tempfile.mkstemp(prefix=PROBE_PREFIX, suffix=".tmp", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise TdofError(f"cannot write the session folder ({e.strerror or type(e).__name__}): "
+                        f"choose a folder you can write to", out) from None
+
+
+def _is_first_write_leftover(p: Path) -> bool:
+    """What an interrupted first run leaves in a folder before session.json is there: its log, a
+    temporary file of session.json or of the write check."""
+    n = p.name
+    return n == LOG_FILE or (n.startswith((f".{SESSION_FILE}.", PROBE_PREFIX)) and bool(TEMP_FILE_RE.match(n)))
+
+
 def prepare_output(out: Path, info: SessionInfo) -> None:
     """Write session.json into a new or empty folder, or check that the folder holds this same
-    session. Never touches the frames of another session."""
+    session. Never touches the frames of another session. A folder that holds only what an
+    interrupted first run left (its log, a temporary file of session.json) counts as empty."""
     if (out / "session.json").exists():
         existing = read_session(out)
         if existing.to_dict() != info.to_dict():
@@ -101,9 +137,12 @@ def prepare_output(out: Path, info: SessionInfo) -> None:
             diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
             raise TdofError(f"holds a different session (differs in: {', '.join(diff)}); choose another --out",
                             out / "session.json")
-    elif out.exists() and any(p.name != LOG_FILE for p in out.iterdir()):
+    elif out.exists() and not all(_is_first_write_leftover(p) for p in out.iterdir()):
         raise TdofError("folder is not empty and holds no session.json; choose another --out", out)
     else:
+        for p in out.glob(".*.tmp") if out.exists() else ():
+            if _is_first_write_leftover(p):
+                p.unlink()
         write_session(out, info)
 
 
@@ -139,10 +178,10 @@ class _Runner:
 
     def run(self, targets: list[np.ndarray], info: SessionInfo) -> None:
         cfg, rig = self.cfg, self.rig
-        session = RawSession.open(self.out)
-        for tmp in self.out.glob("*/arm*/*/.*.tmp"):  # a write cut short by a kill: never journalled
-            tmp.unlink()
+        for tmp in stale_temp_files(self.out):  # a write cut short by a kill: never renamed into place
+            tmp.unlink(missing_ok=True)
             self.log.info("removed the unfinished write %s", tmp)
+        session = RawSession.open(self.out)
         done: set = set()
         for key in session.frames():
             problems = session.verify_file(session.entry(*key), decode=False)
@@ -225,6 +264,7 @@ def run_capture(cfg: CaptureConfig, out: str | Path, yes: bool = False, show_pro
     out = Path(out)
     resume = resume_command or f"tdof20 capture run ... --out {out}"
     targets = check_workspace(cfg)  # refused before anything connects or moves
+    check_output(out)
     rig = rig or build_rig(cfg)
     summary = CaptureSummary(out)
     t_start = time.perf_counter()
@@ -256,6 +296,13 @@ def run_capture(cfg: CaptureConfig, out: str | Path, yes: bool = False, show_pro
                 if log:
                     log.error("stopped: %s", e)
                 raise TdofError(f"capture stopped: {e}; {summary.captured} new frames kept; resume with: {resume}") from None
+            except OSError as e:  # the disk: full, gone read-only, a folder removed under the run
+                _stop(rig, connected)
+                what = _os_error(e, out)
+                if log:
+                    log.error("stopped: %s", what)
+                raise TdofError(f"capture stopped: {what}; {summary.captured} new frames kept; "
+                                f"resume with: {resume}") from None
     finally:
         for dev in connected:
             try:
@@ -272,6 +319,14 @@ def run_capture(cfg: CaptureConfig, out: str | Path, yes: bool = False, show_pro
     return summary
 
 
+def _os_error(e: OSError, out: Path) -> str:
+    """An OSError in words: 'cannot write <file>: <reason>' for a file of the session."""
+    if e.filename and e.strerror:
+        inside = Path(e.filename).resolve().is_relative_to(out.resolve())
+        return f"{'cannot write ' if inside else ''}{e.filename}: {e.strerror}"
+    return f"{type(e).__name__}: {e}"
+
+
 def _stop(rig: Rig, connected: list) -> None:
     for dev in (rig.robot, rig.turntable):
         if dev in connected:
@@ -282,8 +337,33 @@ def _stop(rig: Rig, connected: list) -> None:
 
 
 def verify_session(out: str | Path) -> list[str]:
-    """Problems of a raw session: every planned frame present (a frame taken again counts by its
-    last journal line), files present and decodable, checksums matching. [] = good."""
+    """Problems of a raw session, each one line; [] = good. Checks what annotation will refuse:
+    every phase has frames for every arm position (an empty journal is one problem, not one per
+    planned frame), every planned frame present (a frame taken again counts by its last journal
+    line), files present, decodable, of session.json's camera size and matching their checksums,
+    and depths in millimetres (the first opaque frame of each arm position)."""
     s = RawSession.open(out)
+    lacking = []  # what annotation refuses outright: a phase, or an arm position, without frames
+    for ph in s.info.phases:
+        try:
+            s.require_frames(ph)
+        except TdofError as e:
+            if not s.entries:
+                return [str(e)]  # one line, not one per planned frame
+            lacking.append(str(e))
     problems = [f"missing frame: {ph} arm {a} step {k}" for ph, a, k in s.missing_frames()]
-    return problems + s.verify_all()
+    sound: dict[int, tuple] = {}  # arm -> its first frame of the depth-check phase whose files are sound
+    phase = "opaque" if "opaque" in s.info.phases else s.info.phases[0]
+    for key in s.frames():
+        bad = s.verify_file(s.entry(*key))
+        problems += bad
+        if not bad and key[0] == phase:
+            sound.setdefault(key[1], key)
+    if sound:
+        keys = [sound[a] for a in sorted(sound)]
+        depth = np.concatenate([s.load_depth_mm(*k).reshape(-1) for k in keys])
+        problem = depth_units_problem(s.info, depth)
+        if problem:
+            used = ", ".join(f"{ph} arm {a} step {k}" for ph, a, k in keys)
+            problems.append(f"{s.path / SESSION_FILE}: {problem} (sampled: {used})")
+    return problems + lacking

@@ -11,7 +11,9 @@ A session is a folder::
 
 The journal is the truth: a frame exists once its line is in the journal. Frames are written
 first (atomically), then their journal line is appended and fsync'ed, so an interrupted capture
-resumes from the journal and never trusts a half-written image. See ``docs/formats.md``.
+resumes from the journal and never trusts a half-written image. A journal line torn by a crash
+is decided by one rule (:func:`_torn_tail`) that the reader and the appender share. See
+``docs/formats.md``.
 
 Every problem in a session found while reading is a one-line :class:`TdofError` naming the file;
 reading never modifies anything on disk.
@@ -20,12 +22,13 @@ reading never modifies anything on disk.
 from __future__ import annotations
 
 import copy
+import hashlib
+import io
 import json
 import math
 import os
 import re
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Iterator
@@ -47,6 +50,13 @@ SCENE_ID_RE = re.compile(r"^(single|multi)/(0[1-9]|1[0-9]|20)$")
 OBJ_ID_RANGE = (1, 20)
 RIGID_TOL = 1e-4
 METRES_THRESHOLD_MM = 5.0  # a T_base_tcp translation shorter than this looks like metres
+# a hand-eye translation shorter than this (mm) but not zero looks like metres: a camera on the
+# flange sits tens of millimetres away, i.e. well under 1 when written in metres (the capture
+# config's hand_eye.T_tcp_cam check uses the same rule)
+HAND_EYE_METRES_MM = 1.0
+# the valid depths of a tabletop rig's frame lie at arm's length; a median outside this range (mm)
+# means camera.depth_scale does not give millimetres
+DEPTH_PLAUSIBLE_MM = (100.0, 5000.0)
 
 FrameKey = tuple[str, int, int]  # (phase, arm, step)
 
@@ -135,7 +145,9 @@ class _Checker:
                 self.fail(f"{where}[{i}] must be finite, got {float(x)}")
         return np.asarray(v, dtype=np.float64)
 
-    def rigid(self, v: Any, where: str, check_metres: bool = False) -> np.ndarray:
+    def rigid(self, v: Any, where: str, metres_below: float | None = None, zero_ok: bool = False) -> np.ndarray:
+        """A row-major 4x4 rigid transform in mm. ``metres_below``: a translation shorter than this
+        (mm) looks like metres and is refused; ``zero_ok`` lets an exactly zero translation pass."""
         T = self.numbers(v, 16, where, "numbers (a row-major 4x4 rigid transform, mm)").reshape(4, 4)
         if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
             self.fail(f"{where} is not a rigid transform: last row must be 0 0 0 1, "
@@ -147,9 +159,9 @@ class _Checker:
                       f"(|R R^T - I| = {err:.2g} > {RIGID_TOL:g})")
         if np.linalg.det(R) < 0:
             self.fail(f"{where} is not a rigid transform: its rotation is a reflection (det -1)")
-        if check_metres:
+        if metres_below is not None:
             norm = float(np.linalg.norm(T[:3, 3]))
-            if norm < METRES_THRESHOLD_MM:
+            if norm < metres_below and not (zero_ok and norm == 0.0):
                 self.fail(f"{where} translation has length {norm:.4g}: looks like metres, millimetres expected")
         return T
 
@@ -334,12 +346,13 @@ class SessionInfo:
             q = c.numbers(c.get(a, "q", where), N_JOINTS, f"{where}.q", "joint angles (rad)")
             if np.max(np.abs(q)) > 2 * np.pi + 1e-6:
                 c.fail(f"{where}.q has a joint angle of {np.max(np.abs(q)):.4g}: looks like degrees, radians expected")
-            T = c.rigid(c.get(a, "T_base_tcp", where), f"{where}.T_base_tcp", check_metres=True)
+            T = c.rigid(c.get(a, "T_base_tcp", where), f"{where}.T_base_tcp", metres_below=METRES_THRESHOLD_MM)
             arm_positions.append(ArmPosition(q, T))
             arm_extra.append({k: copy.deepcopy(v) for k, v in a.items() if k not in ("q", "T_base_tcp")})
 
         hand_eye = c.obj(c.get(d, "hand_eye", ""), "hand_eye")
-        T_tcp_cam = c.rigid(c.get(hand_eye, "T_tcp_cam", "hand_eye"), "hand_eye.T_tcp_cam")
+        T_tcp_cam = c.rigid(c.get(hand_eye, "T_tcp_cam", "hand_eye"), "hand_eye.T_tcp_cam",
+                            metres_below=HAND_EYE_METRES_MM, zero_ok=True)
 
         turntable = c.obj(c.get(d, "turntable", ""), "turntable")
         c.number(c.get(turntable, "step_deg", "turntable"), "turntable.step_deg", gt=0)
@@ -481,30 +494,66 @@ def _journal_file(path: str | Path) -> Path:
     return p if p.suffix == ".jsonl" else p / JOURNAL_FILE
 
 
-def _last_line_span(f, size: int) -> tuple[int, bytes]:
-    """(start offset, bytes) of the last line of an open binary file, its final newline included."""
-    pos = size
-    tail = b""
+def _parse_line(raw: bytes) -> Any:
+    return json.loads(raw.decode("utf-8"))
+
+
+def _torn_tail(f, size: int) -> int | None:
+    """Where the journal's torn last line starts (a byte offset), or None when it has none.
+
+    **The torn-line rule**, the one place it is decided: the last non-blank line of the journal is
+    *torn* when it is not valid JSON (a crash or power cut cut the append short), whether or not a
+    newline follows it. :func:`read_journal` leaves a torn line out and :func:`append_journal`
+    cuts it off (with any blank lines after it) before it appends, so the two always agree. A
+    malformed line anywhere else, or a last line that is valid JSON but not a valid entry, is no
+    tear: it is an error naming its line. ``f``: a binary file (or BytesIO) open for reading.
+    """
+    pos, tail = size, b""
     while pos > 0:
         n = min(4096, pos)
         pos -= n
         f.seek(pos)
         tail = f.read(n) + tail
-        i = tail.rfind(b"\n", 0, len(tail) - 1)  # the file's own final newline does not count
-        if i >= 0:
-            return pos + i + 1, tail[i + 1:]
-    return 0, tail
+        body = tail.rstrip()
+        i = body.rfind(b"\n")
+        if body and (i >= 0 or pos == 0):
+            try:
+                _parse_line(body[i + 1:])
+            except ValueError:  # json.JSONDecodeError and UnicodeDecodeError both are
+                return pos + i + 1
+            return None
+    return None
 
 
-def _parse_line(raw: bytes) -> Any:
-    return json.loads(raw.decode("utf-8"))
+def _count_lines(f, upto: int) -> int:
+    f.seek(0)
+    return f.read(upto).count(b"\n")
+
+
+_NOTICED_ENV = "TDOF20_JOURNAL_NOTICES"
+_noticed: set[str] = set()
+
+
+def _notice_torn(path: Path, lineno: int, text: str) -> None:
+    """Say once, on stderr, that line ``lineno`` of the journal ``path`` is torn: once per process
+    and file line however many readers open the journal, and not again in the worker processes
+    this process starts afterwards (they inherit the environment that records it)."""
+    key = hashlib.sha256(f"{os.path.realpath(path)}:{lineno}".encode()).hexdigest()[:16]
+    seen = set(os.environ.get(_NOTICED_ENV, "").split())
+    if key in _noticed or key in seen:
+        return
+    _noticed.add(key)
+    os.environ[_NOTICED_ENV] = " ".join(sorted(seen | {key}))
+    from tdof20.progress import console
+
+    console.print(f"warning: {path}: line {lineno} {text}", markup=False, highlight=False, soft_wrap=True)
 
 
 def append_journal(dir: str | Path, entry: JournalEntry) -> None:
     """Append one entry to ``<dir>/journal.jsonl``, flushed and fsync'ed before returning.
 
-    A last line left incomplete by a crash (no final newline, not valid JSON) is cut off first,
-    with a warning, so the new line starts on a line of its own; a valid last line missing its
+    A torn last line (see :func:`_torn_tail`: not valid JSON, with or without a newline after it)
+    is cut off first, so the new line starts on a line of its own; a valid last line missing its
     newline is ended. Complete lines are never changed.
     """
     path = _journal_file(dir)
@@ -513,29 +562,20 @@ def append_journal(dir: str | Path, entry: JournalEntry) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a+b") as f:
         size = f.seek(0, os.SEEK_END)
-        if size > 0:
-            start, last = _last_line_span(f, size)
-            if not last.endswith(b"\n"):  # the previous append did not finish
-                try:
-                    ok = isinstance(_parse_line(last), dict)
-                except (ValueError, UnicodeDecodeError):
-                    ok = False
-                if ok:
-                    f.write(b"\n")
-                else:
-                    warnings.warn(f"{path}: line {_count_lines(f, start) + 1} is incomplete "
-                                  f"(interrupted write); cutting it off before appending", stacklevel=2)
-                    f.truncate(start)
+        cut = _torn_tail(f, size)
+        if cut is not None:
+            _notice_torn(path, _count_lines(f, cut) + 1,
+                         "is incomplete (an interrupted write): cut off before appending")
+            f.truncate(cut)
+        elif size > 0:
+            f.seek(size - 1)
+            if f.read(1) != b"\n":  # a valid last line whose newline the crash did not write
+                f.write(b"\n")
         f.write(line)
         f.flush()
         os.fsync(f.fileno())
     if created:
         _fsync_dir(path.parent)
-
-
-def _count_lines(f, upto: int) -> int:
-    f.seek(0)
-    return f.read(upto).count(b"\n")
 
 
 def _fsync_dir(d: Path) -> None:
@@ -554,7 +594,7 @@ def _fsync_dir(d: Path) -> None:
 def read_journal(dir: str | Path) -> list[JournalEntry]:
     """All entries of ``<dir>/journal.jsonl`` in file order ([] if there is no journal).
 
-    An unparseable last line (a crash mid-append) is ignored with a warning; a malformed line
+    A torn last line (see :func:`_torn_tail`) is left out, said once on stderr; a malformed line
     anywhere else is a TdofError naming the file and the line number. Blank lines are skipped.
     """
     path = _journal_file(dir)
@@ -564,20 +604,39 @@ def read_journal(dir: str | Path) -> list[JournalEntry]:
         return []
     except (IsADirectoryError, PermissionError) as e:
         raise TdofError(f"cannot read ({type(e).__name__})", path) from None
-    lines = data.split(b"\n")
-    numbered = [(i + 1, raw) for i, raw in enumerate(lines) if raw.strip()]
+    cut = _torn_tail(io.BytesIO(data), len(data))
+    if cut is not None:
+        _notice_torn(path, data.count(b"\n", 0, cut) + 1,
+                     "is incomplete (an interrupted write): ignored; resuming the capture takes "
+                     "its frame again and cuts the line off")
+        data = data[:cut]
     out = []
-    for j, (lineno, raw) in enumerate(numbered):
+    for i, raw in enumerate(data.split(b"\n")):
+        if not raw.strip():
+            continue
         try:
             d = _parse_line(raw)
-        except (ValueError, UnicodeDecodeError) as e:
-            if j == len(numbered) - 1:
-                warnings.warn(f"{path}: ignoring incomplete last line {lineno} (interrupted write?)", stacklevel=2)
-                break
+        except ValueError as e:
             msg = e.msg if isinstance(e, json.JSONDecodeError) else "not UTF-8 text"
-            raise TdofError(f"line {lineno} is not valid JSON ({msg})", path) from None
-        out.append(JournalEntry.from_dict(d, path, lineno))
+            raise TdofError(f"line {i + 1} is not valid JSON ({msg})", path) from None
+        out.append(JournalEntry.from_dict(d, path, i + 1))
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# stale temporary files
+# ---------------------------------------------------------------------------------------------
+# what tdof20.formats.io.atomic_write_bytes leaves behind when it is killed between creating its
+# temporary file and renaming it: tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp"), whose
+# random part is 8 characters of [a-z0-9_]
+TEMP_FILE_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")
+
+
+def stale_temp_files(dir: str | Path) -> list[Path]:
+    """The unfinished atomic writes (``.{name}.<8 random characters>.tmp`` files) anywhere under a
+    session folder, sorted. Only files of exactly that pattern; nothing is removed here."""
+    root = Path(dir)
+    return sorted(p for p in root.rglob(".*.tmp") if TEMP_FILE_RE.match(p.name) and p.is_file())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -609,6 +668,43 @@ def write_frame(dir: str | Path, info: SessionInfo, phase: str, arm: int, step: 
                          t=time.time() if t is None else float(t), extra=dict(extra or {}))
     append_journal(dir, entry)
     return entry
+
+
+# ---------------------------------------------------------------------------------------------
+# checks of the frames against session.json
+# ---------------------------------------------------------------------------------------------
+_KIND_WORDS = {"rgb": "colour image", "depth": "depth image"}
+
+
+def frame_size_problem(image: np.ndarray, camera: PinholeCamera, kind: str = "image") -> str | None:
+    """None when a decoded frame ``image`` ((H,W) or (H,W,C)) has the size of session.json's
+    camera, else the problem in words (the caller names the file). ``kind``: 'rgb', 'depth'."""
+    h, w = np.shape(image)[:2]
+    if (h, w) == (camera.height, camera.width):
+        return None
+    return (f"{_KIND_WORDS.get(kind, kind)} is {w}x{h} pixels but session.json's camera is "
+            f"{camera.width}x{camera.height} (camera.width x camera.height)")
+
+
+def depth_units_problem(info: SessionInfo, depth_mm: np.ndarray) -> str | None:
+    """None when the valid depths (> 0) of ``depth_mm`` (any shape: one decoded opaque frame, or
+    several stacked, in mm through ``info.camera.depth_scale``) are plausible for a tabletop rig,
+    i.e. their median lies in ``DEPTH_PLAUSIBLE_MM``; else the problem in words, with the
+    ``camera.depth_scale`` that would fix it (the caller names the file). No valid depth at all
+    is a problem too."""
+    z = np.asarray(depth_mm, dtype=np.float64).reshape(-1)
+    z = z[np.isfinite(z) & (z > 0)]
+    scale = info.camera.depth_scale
+    if z.size == 0:
+        return "holds no depth at all (every pixel is 0): the camera delivered no depth"
+    med = float(np.median(z))
+    lo, hi = DEPTH_PLAUSIBLE_MM
+    if lo <= med <= hi:
+        return None
+    factor = 10.0 ** round(math.log10(math.sqrt(lo * hi) / med))
+    return (f"the valid depths have a median of {med:.3g} mm, implausible for a tabletop rig "
+            f"({lo:g}..{hi:g} mm): camera.depth_scale in session.json is {scale:g} mm per unit; "
+            f"depth_scale = {scale * factor:g} would give {med * factor:.4g} mm")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -665,6 +761,31 @@ class RawSession:
         """Planned (phase, arm, step) triples that the journal does not list, in plan order."""
         return [k for k in self.info.planned_frames() if k not in self._index]
 
+    def require_frames(self, phase: str) -> list[FrameKey]:
+        """The captured frames of ``phase`` (plan order), or a TdofError naming journal.jsonl (or
+        session.json) that says what is missing: no such phase in the plan, no frame of the phase
+        at all, or arm positions without any. The same answer on every call, for every caller."""
+        if phase not in self.info.phases:
+            raise TdofError(f"phases {list(self.info.phases)} do not include '{phase}': this session "
+                            f"has no {phase} frames", self.path / SESSION_FILE)
+        jpath = self.path / JOURNAL_FILE
+        frames = self.frames(phase)
+        if not frames:
+            if not self.entries:
+                why = ("the journal is empty" if jpath.exists() else "there is no journal") + ": was the capture run?"
+            else:
+                by_phase = {p: len(self.frames(p)) for p in self.info.phases if self.frames(p)}
+                listed = ", ".join(f"{n} {p}" for p, n in by_phase.items())
+                why = f"the journal lists {listed} frames only: was the {phase} phase captured?"
+            raise TdofError(f"no {phase} frames ({why})", jpath)
+        have = {a for _, a, _ in frames}
+        lacking = [a for a in range(self.info.n_arms) if a not in have]
+        if lacking:
+            arms = ", ".join(str(a) for a in lacking)
+            raise TdofError(f"no {phase} frames for arm position{'s' if len(lacking) > 1 else ''} {arms} "
+                            f"(of {self.info.n_arms} in session.json): was the capture stopped early?", jpath)
+        return frames
+
     @property
     def truth_dir(self) -> Path | None:
         d = self.path / TRUTH_DIR
@@ -686,9 +807,9 @@ class RawSession:
             raise TdofError(f"checksum mismatch: the file differs from what the journal recorded "
                             f"for {phase} arm {arm} step {step}", p)
         img = decode_png(data, p, kind)
-        cam = self.info.camera
-        if img.shape[:2] != (cam.height, cam.width):
-            raise TdofError(f"image is {img.shape[1]}x{img.shape[0]}, session camera is {cam.width}x{cam.height}", p)
+        problem = frame_size_problem(img, self.info.camera, kind)
+        if problem:
+            raise TdofError(problem, p)
         return img
 
     def load_rgb(self, phase: str, arm: int, step: int, verify: bool = False) -> np.ndarray:
@@ -729,8 +850,9 @@ class RawSession:
             except TdofError as ex:
                 problems.append(str(ex))
                 continue
-            if img.shape[:2] != (cam.height, cam.width):
-                problems.append(f"{p}: image is {img.shape[1]}x{img.shape[0]}, session camera is {cam.width}x{cam.height}")
+            problem = frame_size_problem(img, cam, kind)
+            if problem:
+                problems.append(f"{p}: {problem}")
         return problems
 
     def verify_all(self) -> list[str]:
@@ -754,5 +876,6 @@ class RawSession:
 __all__ = [
     "FORMAT", "VERSION", "SESSION_FILE", "JOURNAL_FILE", "TRUTH_DIR", "PHASES", "SCENE_ID_RE",
     "ArmPosition", "SessionInfo", "JournalEntry", "RawSession", "frame_paths", "write_session",
-    "read_session", "append_journal", "read_journal", "write_frame",
+    "read_session", "append_journal", "read_journal", "write_frame", "frame_size_problem",
+    "depth_units_problem", "stale_temp_files", "TEMP_FILE_RE", "DEPTH_PLAUSIBLE_MM",
 ]
