@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import read_toml
+from tdof20.config import config_from_data, fail as _fail, load_config_file
 
 TWO_PI = 2 * math.pi
 PHASES = ("transparent", "opaque")
@@ -66,6 +66,7 @@ class TurntableConfig:
     settle_s: float = 0.0                 # wait after the table stopped, before grabbing
     timeout_s: float = 30.0
     home: bool = True                     # home the table before the first frame
+    direction: str = "ccw"                # which way positive angles turn the table, seen from above: "ccw" | "cw"
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,12 @@ class HandEyeConfig:
 class SimConfig:
     seed: int = 0
     n_arms: int = 4                       # arm positions computed for the sim when robot.positions is empty
+    # the lab (tdof20.sim.lab): what a real lab adds to a clean turntable; the defaults are the clean rig
+    clutter: tuple[str, ...] = ()         # static presets beside the table: cabinet, monitor, box, wall
+    record_direction: bool = True         # false: leave turntable.direction out of session.json
+    hand_eye_error_mm: float = 0.0        # the camera really sits this far from the recorded hand-eye
+    hand_eye_error_deg: float = 0.0       # ... and turned by this much (direction seeded by sim.seed)
+    step_jitter_deg: float = 0.0          # the table stands at nominal + U[-jitter, jitter] per frame
 
 
 @dataclass(frozen=True)
@@ -121,64 +128,14 @@ BACKENDS = {"robot": ("sim", "ur_rtde"), "turntable": ("sim", "grbl"), "camera":
 
 
 # ------------------------------------------------------------------------------------ loading
-def _fail(src: str, where: str, msg: str):
-    raise TdofError(f"{where}: {msg}" if where else msg, src or None)
-
-
-def _convert(value: Any, tp: Any, src: str, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            _fail(src, where, f"must be a table, got {type(value).__name__}")
-        return _build(tp, value, src, where)
-    if tp is bool:
-        if not isinstance(value, bool):
-            _fail(src, where, f"must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            _fail(src, where, f"must be an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            _fail(src, where, f"must be a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            _fail(src, where, f"must be a string, got {value!r}")
-        return value
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            _fail(src, where, f"must be a list, got {value!r}")
-        inner = args[0]
-        return tuple(_convert(v, inner, src, f"{where}[{i}]") for i, v in enumerate(value))
-    raise TypeError(f"unsupported config type {tp}")  # pragma: no cover - programming error
-
-
-def _build(cls, data: dict, src: str, where: str):
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.name != "source"}
-    for key in data:
-        if key not in names:
-            path = f"{where}.{key}" if where else key
-            _fail(src, "", f"unknown option '{path}' (known: {', '.join(sorted(names))})")
-    kwargs = {k: _convert(v, hints[k], src, f"{where}.{k}" if where else k) for k, v in data.items()}
-    return cls(**kwargs)
-
-
 def config_from_dict(data: dict, source: str = "") -> CaptureConfig:
-    cfg = _build(CaptureConfig, data, source, "")
-    cfg = dataclasses.replace(cfg, source=source)
-    validate(cfg)
-    return cfg
+    """A checked :class:`CaptureConfig` from a parsed TOML document (strict; one-line errors)."""
+    return validate(config_from_data(CaptureConfig, data, source))
 
 
 def load_config(path: str | Path) -> CaptureConfig:
     """Read and check a TOML capture config; any problem is a one-line TdofError naming the file."""
-    path = Path(path)
-    data = read_toml(path)
-    return config_from_dict(data, str(path))
+    return validate(load_config_file(CaptureConfig, path))
 
 
 # ------------------------------------------------------------------------------------ checks
@@ -255,14 +212,38 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
         _fail(src, "hand_eye.T_tcp_cam", "give the hand-eye calibration (16 numbers, mm)")
     if cfg.sim.n_arms < 1 or cfg.sim.n_arms > 8:
         _fail(src, "sim.n_arms", "must be in 1..8")
+    from tdof20.sim.lab import DIRECTIONS, clutter_names
+
+    if t.direction not in DIRECTIONS:
+        _fail(src, "turntable.direction", f"must be one of {', '.join(DIRECTIONS)} (seen from above), got '{t.direction}'")
+    sm = cfg.sim
+    bad = [c for c in sm.clutter if c not in clutter_names()]
+    if bad:
+        _fail(src, "sim.clutter", f"unknown preset {', '.join(repr(b) for b in bad)} (known: {', '.join(clutter_names())})")
+    if len(set(sm.clutter)) != len(sm.clutter):
+        _fail(src, "sim.clutter", f"names a preset twice: {list(sm.clutter)}")
+    if not 0 <= sm.hand_eye_error_mm <= 50:
+        _fail(src, "sim.hand_eye_error_mm", f"must be in [0, 50] mm, got {sm.hand_eye_error_mm}")
+    if not 0 <= sm.hand_eye_error_deg <= 10:
+        _fail(src, "sim.hand_eye_error_deg", f"must be in [0, 10] degrees, got {sm.hand_eye_error_deg}")
+    if not 0 <= sm.step_jitter_deg < t.step_deg / 2:
+        _fail(src, "sim.step_jitter_deg", f"must be in [0, step_deg / 2 = {t.step_deg / 2:g}) degrees, got {sm.step_jitter_deg}")
     return cfg
 
 
 def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0.9, n_arms: int = 4,
-               width: int = 640, height: int = 480, seed: int = 0, phases=PHASES) -> CaptureConfig:
-    """The config of a capture on the simulated rig (what ``capture run --sim`` builds)."""
+               width: int = 640, height: int = 480, seed: int = 0, phases=PHASES, clutter=(),
+               direction: str = "ccw", record_direction: bool = True, hand_eye_error_mm: float = 0.0,
+               hand_eye_error_deg: float = 0.0, step_jitter_deg: float = 0.0) -> CaptureConfig:
+    """The config of a capture on the simulated rig (what ``capture run --sim`` builds); the
+    lab options (clutter ... step_jitter_deg) are those of :class:`SimConfig` and
+    ``TurntableConfig.direction``."""
     cfg = CaptureConfig(session=SessionConfig(scene_id=scene_id, phases=tuple(phases)),
-                        turntable=TurntableConfig(step_deg=step_deg, steps=steps),
+                        turntable=TurntableConfig(step_deg=step_deg, steps=steps, direction=direction),
                         camera=CameraConfig(width=width, height=height),
-                        sim=SimConfig(seed=seed, n_arms=n_arms))
+                        sim=SimConfig(seed=seed, n_arms=n_arms, clutter=tuple(clutter),
+                                      record_direction=record_direction,
+                                      hand_eye_error_mm=float(hand_eye_error_mm),
+                                      hand_eye_error_deg=float(hand_eye_error_deg),
+                                      step_jitter_deg=float(step_jitter_deg)))
     return validate(cfg)

@@ -25,6 +25,16 @@ def hand_eye(cfg: CaptureConfig) -> np.ndarray:
     return np.asarray(he, float).reshape(4, 4) if he else DEFAULT_T_TCP_CAM.copy()
 
 
+def lab_record(cfg: CaptureConfig) -> dict:
+    """What session.json records of the simulated lab (under ``sim.lab``): the clutter and the
+    sizes of the errors, not the errors themselves (those are in truth/rig.json); {} for a clean
+    rig. The direction is not here: it is ``turntable.direction``, or left out."""
+    s = cfg.sim
+    lab = {"clutter": list(s.clutter), "hand_eye_error_mm": s.hand_eye_error_mm,
+           "hand_eye_error_deg": s.hand_eye_error_deg, "step_jitter_deg": s.step_jitter_deg}
+    return {k: v for k, v in lab.items() if v}
+
+
 def arm_targets(cfg: CaptureConfig) -> list[np.ndarray]:
     """Joint vectors (rad) of the arm positions: the configured ones, or for the simulator the
     UR5 poses that look at the table from evenly spread elevations."""
@@ -99,9 +109,17 @@ def session_info(cfg: CaptureConfig, intrinsics: dict, targets: list[np.ndarray]
     objs = list(cfg.session.objects) or (get_scene(cfg.session.scene_id).obj_ids if cfg.is_sim else [])
     extra = {"rig": "sim" if cfg.is_sim else "hardware",
              "capture": {k: v for k, v in cfg.to_dict().items() if k in ("robot", "turntable", "camera")}}
+    # the direction is recorded once, as turntable.direction (or not at all: sim.record_direction)
+    extra["capture"]["turntable"].pop("direction", None)
+    turntable = {"step_deg": cfg.turntable.step_deg, "steps": cfg.turntable.steps, "direction": cfg.turntable.direction}
     if cfg.is_sim:
         scene = get_scene(cfg.session.scene_id)
         extra["sim"] = {"seed": cfg.sim.seed, "sticker": scene.sticker}
+        lab = lab_record(cfg)
+        if lab:
+            extra["sim"]["lab"] = lab
+        if not cfg.sim.record_direction:
+            del turntable["direction"]
     for k in ("K", "width", "height", "depth_scale"):
         intrinsics = {kk: vv for kk, vv in intrinsics.items() if kk != k}
     if intrinsics:
@@ -112,7 +130,7 @@ def session_info(cfg: CaptureConfig, intrinsics: dict, targets: list[np.ndarray]
         camera=cam,
         arm_positions=[ArmPosition(q=np.asarray(q, float), T_base_tcp=ur5_fk(q)) for q in targets],
         T_tcp_cam=hand_eye(cfg),
-        turntable={"step_deg": cfg.turntable.step_deg, "steps": cfg.turntable.steps, "direction": "ccw"},
+        turntable=turntable,
         phases=tuple(cfg.session.phases),
         extra=extra,
     )
@@ -127,7 +145,8 @@ def describe(cfg: CaptureConfig) -> dict:
         "backends": {k: getattr(cfg, k).backend for k in ("robot", "turntable", "camera")},
         "arms": [{"arm": a, "q_deg": np.degrees(q).round(2).tolist(), "tcp_mm": ur5_fk(q)[:3, 3].round(1).tolist(),
                   "problems": [p.message for p in problems if p.arm == a]} for a, q in enumerate(targets)],
-        "steps": cfg.turntable.steps, "step_deg": cfg.turntable.step_deg,
+        "steps": cfg.turntable.steps, "step_deg": cfg.turntable.step_deg, "direction": cfg.turntable.direction,
+        "lab": lab_record(cfg) if cfg.is_sim else {},
         "estimate": estimate_duration(cfg, targets), "ok": not problems,
         "config": dataclasses.asdict(cfg.session),
     }

@@ -43,17 +43,21 @@ def build_rig(cfg: CaptureConfig, faults: dict | None = None) -> Rig:
 
 def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     from tdof20.capture.hardware.sim import SimCamera, SimRobot, SimTurntable, SimWorld
+    from tdof20.sim.lab import TableMotion, true_hand_eye
     from tdof20.sim.render import SimRenderer
     from tdof20.sim.rig import RigLayout, oakd_camera, ur5_fk
     from tdof20.sim.scenes import get_scene
 
-    T_tcp_cam = hand_eye(cfg)
+    s = cfg.sim
+    T_tcp_cam = hand_eye(cfg)  # what session.json records, and what the arm targets are planned with
+    T_tcp_cam_true = true_hand_eye(T_tcp_cam, s.hand_eye_error_mm, s.hand_eye_error_deg, s.seed)
     layout = RigLayout(T_tcp_cam=T_tcp_cam)
     targets = arm_targets(cfg)
     camera = oakd_camera(cfg.camera.width, cfg.camera.height)
     renderer = SimRenderer(get_scene(cfg.session.scene_id, layout.table_radius), camera, layout,
-                           [ur5_fk(q) @ T_tcp_cam for q in targets], seed=cfg.sim.seed)
-    world = SimWorld(renderer, targets, faults)
+                           [ur5_fk(q) @ T_tcp_cam_true for q in targets], seed=s.seed, clutter=s.clutter)
+    table = TableMotion(cfg.turntable.direction, s.step_jitter_deg, s.seed)
+    world = SimWorld(renderer, targets, faults, table)
 
     def set_phase(phase: str) -> None:
         world.phase = phase
@@ -61,6 +65,9 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     def after_capture(out: Path, show_progress: bool = True) -> None:
         from tdof20.sim.truth import write_truth
 
-        write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress)
+        write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress, table=table,
+                    rig={"T_tcp_cam": T_tcp_cam_true, "T_tcp_cam_recorded": T_tcp_cam, "clutter": list(s.clutter),
+                         "hand_eye_error_mm": s.hand_eye_error_mm, "hand_eye_error_deg": s.hand_eye_error_deg},
+                    phases=tuple(cfg.session.phases))
 
     return Rig(SimRobot(world), SimTurntable(world), SimCamera(world), set_phase, after_capture, world)

@@ -1,7 +1,8 @@
 """Ray-cast renderer of the simulated rig (open3d RaycastingScene, CPU).
 
 Three kinds of ray-casting scenes, each built once:
-- ``world``: the static room in the robot base frame, with the turntable body. The turntable is a
+- ``world``: the static room in the robot base frame, with the turntable body and the lab's
+  clutter (which does not turn, so it is cached like the room). The turntable is a
   disk, so its geometry does not change as it turns; only its sticker does, and the sticker is
   looked up at rotated table coordinates. The world hits of the primary rays are therefore
   cached per arm position.
@@ -28,6 +29,7 @@ from tdof20.geometry import PinholeCamera, invert, transform_points
 from tdof20.geometry.raycast import ModelRaycaster, convex_hull_points, hull_roi
 from tdof20.o3d import o3d
 from tdof20.objects import get_object
+from tdof20.sim.lab import clutter_parts
 from tdof20.sim.rig import RigLayout
 from tdof20.sim.scenes import SceneSpec
 from tdof20.sim.sensor import (SensorModel, depth_edges, disparity_slack, smooth_field, stereo_depth,
@@ -78,13 +80,17 @@ def _box(lo, hi) -> trimesh.Trimesh:
 class SimRenderer:
     """Renders frames of one scene as seen from the arm positions of a session.
 
-    ``T_base_cams``: camera pose per arm position (base frame, mm). Use :meth:`render`.
+    ``T_base_cams``: camera pose per arm position (base frame, mm) — the true poses, which a
+    session with a hand-eye error records differently. ``clutter``: names of static lab
+    presets (:data:`tdof20.sim.lab.CLUTTER`) added to the room. Use :meth:`render`.
     """
 
     def __init__(self, scene: SceneSpec, camera: PinholeCamera, layout: RigLayout,
                  T_base_cams: list[np.ndarray], sensor: SensorModel | None = None,
-                 glass: GlassModel | None = None, seed: int = 0, threads: bool = True):
+                 glass: GlassModel | None = None, seed: int = 0, threads: bool = True,
+                 clutter: tuple[str, ...] = ()):
         self.scene = scene
+        self.clutter = tuple(clutter)
         self.camera = camera
         self.layout = layout
         self.T_base_cams = [np.asarray(T, float) for T in T_base_cams]
@@ -126,6 +132,7 @@ class SimRenderer:
         parts.append((trimesh.Trimesh(room.vertices, room.faces[:, ::-1]), "room"))
         parts.append((_box([1700, -1150, -900], [2080, -420, 300]), "wood"))
         parts.append((_box([1750, 500, -900], [2080, 1300, -150]), "metal"))
+        parts += clutter_parts(self.clutter, L)  # the lab's static clutter (sim.lab), after the room
         scene = o3d.t.geometry.RaycastingScene()
         self._world_material = []
         for mesh, mat in parts:
@@ -200,6 +207,8 @@ class SimRenderer:
                 is_top |= top
             elif mat == "room":
                 albedo[sel] = self._room_surface(points[sel])
+            elif callable(mat):  # clutter: its own albedo of base-frame points
+                albedo[sel] = mat(points[sel])
             else:
                 albedo[sel] = room_albedo(mat, points[sel])
         return albedo, shade, is_top

@@ -2,24 +2,61 @@
 
 One image per frame of the transparent phase, ``im_id = arm * steps + step``: poses, full and
 visible masks, the noise-free depth, and ``cam_R_w2c``/``cam_t_w2c`` with the turntable frame at
-angle 0 as the world. The models go to ``truth/models``. Resumable: frames already written are kept.
+angle 0 as the world. The models go to ``truth/models``; ``truth/rig.json`` holds the rig as it
+really was (the true hand-eye and camera poses, the direction and the physical table angle of
+every frame of both phases, the clutter). Resumable: frames already written are kept.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from tdof20.formats import BopSceneWriter, read_json, read_session
+import numpy as np
+
+from tdof20.formats import BopSceneWriter, read_json, read_session, write_json
 from tdof20.geometry import invert
 from tdof20.objects import export_models
 from tdof20.progress import progress
+from tdof20.sim.lab import TableMotion
 from tdof20.sim.render import SimRenderer
+
+RIG_FILE = "rig.json"
+
+
+def _flat(T) -> list[float]:
+    return [float(v) for v in np.asarray(T, float).reshape(-1)]
+
+
+def write_rig_truth(renderer: SimRenderer, out: Path, steps: int, step_deg: float, table: TableMotion,
+                    rig: dict | None = None, phases=("transparent", "opaque")) -> Path:
+    """``truth/rig.json``: the rig as it really was. ``table_angle_deg[phase][arm][step]`` is the
+    physical angle (counter-clockwise from above) of every frame, ``T_base_cam`` the true camera
+    pose per arm position (row-major 16 numbers, mm), ``T_tcp_cam`` the true mount and
+    ``T_tcp_cam_recorded`` what session.json says (when the caller knows them)."""
+    n_arms = len(renderer.T_base_cams)
+    doc = {"direction": table.direction, "step_jitter_deg": table.jitter_deg,
+           "table_angle_deg": {ph: [[table.actual(ph, a, k * step_deg) for k in range(steps)] for a in range(n_arms)]
+                               for ph in phases},
+           "T_base_cam": [_flat(T) for T in renderer.T_base_cams],
+           "clutter": list(renderer.clutter)}
+    for k, v in (rig or {}).items():
+        doc[k] = _flat(v) if isinstance(v, np.ndarray) else v
+    path = out / RIG_FILE
+    write_json(path, doc, indent=None)
+    return path
 
 
 def write_truth(renderer: SimRenderer, session_dir: str | Path, steps: int, step_deg: float,
-                show_progress: bool = True) -> Path:
+                show_progress: bool = True, table: TableMotion | None = None, rig: dict | None = None,
+                phases=("transparent", "opaque")) -> Path:
+    """Write (or complete) ``truth/`` of a simulated session. ``table``: how the table really
+    moved (default: exactly as told, counter-clockwise); ``rig``: more of the true rig for
+    rig.json (see :func:`write_rig_truth`)."""
+    table = table or TableMotion()
     out = Path(session_dir) / "truth"
     info = read_session(session_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_rig_truth(renderer, out, steps, step_deg, table, rig, phases)
     gt_file = out / "scene_gt.json"
     done = {int(k) for k in read_json(gt_file)} if gt_file.exists() else set()
     obj_ids = sorted({p.obj_id for p in renderer.scene.placements})
@@ -31,7 +68,7 @@ def write_truth(renderer: SimRenderer, session_dir: str | Path, steps: int, step
     with BopSceneWriter(out) as writer, progress(show_progress and bool(todo)) as bar:
         task = bar.add_task("truth", total=len(todo))
         for i, (arm, step) in enumerate(todo):
-            angle = step * step_deg
+            angle = table.actual("transparent", arm, step * step_deg)
             f = renderer.truth(arm, angle)
             full = renderer.full_masks(f.poses)
             visib = [f.label == g for g in range(len(f.poses))]

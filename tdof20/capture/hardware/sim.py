@@ -2,10 +2,14 @@
 its targets, a turntable, and a camera that ray-casts what it sees from the robot's actual pose.
 
 The three devices share one :class:`SimWorld` (robot joints, table angle, which objects stand on
-the table: glass or opaque twins). ``faults`` inject failures for tests and drills:
-``{"camera_timeouts": n}`` makes the next n grabs time out, ``{"turntable_timeouts": n}`` the
-next n moves, ``{"protective_stop_on_move": k}`` puts the robot in a protective stop on its k-th
-move (1-based) until :meth:`SimWorld.clear_protective_stop`.
+the table: glass or opaque twins). The turntable reports the angle it was told (an open-loop
+stepper does); where it physically stands — turned the other way, off by a step-angle error — is
+the world's :class:`~tdof20.sim.lab.TableMotion`, and the camera renders that.
+
+``faults`` inject failures for tests and drills: ``{"camera_timeouts": n}`` makes the next n
+grabs time out, ``{"turntable_timeouts": n}`` the next n moves, ``{"protective_stop_on_move": k}``
+puts the robot in a protective stop on its k-th move (1-based) until
+:meth:`SimWorld.clear_protective_stop`.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 
 from tdof20.capture.hardware.interfaces import (HardwareError, RGBDCamera, RGBDFrame, Robot, RobotState,
                                                 SafetyStop, Turntable)
+from tdof20.sim.lab import TableMotion
 from tdof20.sim.render import SimRenderer
 from tdof20.sim.rig import UR5_HOME, ur5_fk
 
@@ -23,8 +28,10 @@ from tdof20.sim.rig import UR5_HOME, ur5_fk
 class SimWorld:
     """State shared by the simulated devices."""
 
-    def __init__(self, renderer: SimRenderer, arm_qs: list[np.ndarray], faults: dict | None = None):
+    def __init__(self, renderer: SimRenderer, arm_qs: list[np.ndarray], faults: dict | None = None,
+                 table: TableMotion | None = None):
         self.renderer = renderer
+        self.table = table or TableMotion()
         self.arm_qs = [np.asarray(q, float) for q in arm_qs]
         self.q = UR5_HOME.copy()
         self.angle = 0.0
@@ -39,6 +46,13 @@ class SimWorld:
         if d[i] > 1e-6:
             raise HardwareError("sim camera", "the arm is not at one of the session's arm positions")
         return i
+
+    def physical_angle(self) -> float:
+        """Where the table really stands (deg, counter-clockwise from above) for the angle it
+        was told, at the current phase and arm position."""
+        if self.table.is_nominal:
+            return self.angle
+        return self.table.actual(self.phase, self.arm_index(), self.angle)
 
     def take_fault(self, name: str) -> bool:
         n = self.faults.get(name, 0)
@@ -129,6 +143,6 @@ class SimCamera(RGBDCamera):
         if self.world.take_fault("camera_timeouts"):
             raise HardwareError(self.name, f"no synchronised colour+depth pair within {timeout_s:g} s")
         w = self.world
-        f = w.renderer.render(w.arm_index(), w.angle, w.phase)
+        f = w.renderer.render(w.arm_index(), w.physical_angle(), w.phase)
         t = time.time()
         return RGBDFrame(f.rgb, f.depth, t, t)
