@@ -65,17 +65,41 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
 
 # ----------------------------------------------------------------------------------- capture
 def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, step_deg: float, arm_positions: int,
-                    width: int, height: int, seed: int):
+                    width: int, height: int, seed: int, clutter: str = "", direction: str = "ccw",
+                    record_direction: bool = True, hand_eye_error: str = "", step_jitter: float = 0.0):
     from tdof20.capture import load_config, sim_config
 
     if config is not None and sim:
         raise TdofError("give either a CONFIG file or --sim, not both")
     if config is None and not sim:
         raise TdofError("give a CONFIG file (see examples/real_rig.toml), or --sim for the simulated rig")
+    lab_given = [o for o, v in (("--clutter", clutter), ("--direction", direction != "ccw"),
+                                ("--no-record-direction", not record_direction),
+                                ("--hand-eye-error", hand_eye_error), ("--step-jitter", step_jitter)) if v]
     if config is not None:
+        if lab_given:
+            raise TdofError(f"{', '.join(lab_given)} go with --sim; in a CONFIG set them in its [sim] table "
+                            f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg) and "
+                            f"[turntable] direction")
         return load_config(config)
+    from tdof20.sim.lab import DIRECTIONS, clutter_names
+
+    names = [c for c in clutter.replace(" ", "").split(",") if c]
+    bad = [c for c in names if c not in clutter_names()]
+    if bad:
+        raise TdofError(f"--clutter: unknown preset {', '.join(repr(b) for b in bad)} (known: {', '.join(clutter_names())})")
+    if direction not in DIRECTIONS:
+        raise TdofError(f"--direction must be {' or '.join(DIRECTIONS)} (seen from above), got '{direction}'")
+    try:
+        he = [float(x) for x in hand_eye_error.replace(" ", "").split(",") if x]
+    except ValueError:
+        he = None
+    if he is None or len(he) > 2:
+        raise TdofError(f"--hand-eye-error must be MM or MM,DEG (e.g. 2,0.5), got '{hand_eye_error}'")
+    he_mm, he_deg = (he + [0.0, 0.0])[:2]
     return sim_config(scene, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
-                      seed=seed)
+                      seed=seed, clutter=names, direction=direction, record_direction=record_direction,
+                      hand_eye_error_mm=he_mm, hand_eye_error_deg=he_deg, step_jitter_deg=step_jitter)
 
 
 CONFIG_ARG = typer.Argument(None, help="capture config (TOML); leave out with --sim")
@@ -83,19 +107,31 @@ SIM = typer.Option(False, "--sim", help="use the simulated rig (no config needed
 STEPS = typer.Option(400, help="--sim: turntable steps per arm position")
 STEP_DEG = typer.Option(0.9, help="--sim: turntable step in degrees")
 ARMS = typer.Option(4, help="--sim: number of arm positions")
+CLUTTER = typer.Option("", help="--sim: static lab clutter beside the table, comma-separated presets "
+                                "(cabinet, monitor, box, wall)")
+DIRECTION = typer.Option("ccw", help="--sim: which way the table turns, seen from above: ccw or cw")
+RECORD_DIRECTION = typer.Option(True, "--record-direction/--no-record-direction",
+                                help="--sim: write turntable.direction to session.json")
+HAND_EYE_ERROR = typer.Option("", help="--sim: hand-eye error MM[,DEG]: the camera really sits this far "
+                                       "from the recorded mount (e.g. 2,0.5)")
+STEP_JITTER = typer.Option(0.0, help="--sim: step-angle error bound in degrees (uniform, per frame)")
 
 
 @capture_app.command("plan")
 def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: str = SCENE, steps: int = STEPS,
                  step_deg: float = STEP_DEG, arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT,
-                 seed: int = SEED, json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
+                 seed: int = SEED, clutter: str = CLUTTER, direction: str = DIRECTION,
+                 record_direction: bool = RECORD_DIRECTION, hand_eye_error: str = HAND_EYE_ERROR,
+                 step_jitter: float = STEP_JITTER,
+                 json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
     """Print the sequence a session will run and its estimated duration; checks every arm target
     against the workspace limits. Touches no hardware."""
     import json
 
     from tdof20.capture import describe
 
-    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed)
+    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
+                          direction, record_direction, hand_eye_error, step_jitter)
     d = describe(cfg)
     if json_out:
         print(json.dumps(d, indent=2))
@@ -110,8 +146,10 @@ def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: st
             t.add_row(str(a["arm"]), " ".join(f"{v:.1f}" for v in a["q_deg"]), " ".join(f"{v:.0f}" for v in a["tcp_mm"]),
                       "[green]ok[/green]" if not a["problems"] else "[red]" + "; ".join(a["problems"]) + "[/red]")
         out_console.print(t)
-        out_console.print(f"per phase and arm position: {d['steps']} steps of {d['step_deg']:g} deg; "
-                          f"{est['frames']} RGB-D pairs in all")
+        out_console.print(f"per phase and arm position: {d['steps']} steps of {d['step_deg']:g} deg "
+                          f"({d['direction']}); {est['frames']} RGB-D pairs in all")
+        if d["lab"]:
+            out_console.print("simulated lab: " + "; ".join(f"{k} {v}" for k, v in d["lab"].items()))
         out_console.print(f"estimated duration on the hardware: {est['total_s'] / 60:.1f} min "
                           f"({est['per_frame_s']:.2f} s a frame, {est['arm_moves_s']:.0f} s of arm moves; "
                           f"the operator's swap between phases not counted)")
@@ -126,13 +164,16 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
                 out: Path = typer.Option(..., "--out", help="session folder (created; resumed if it holds this session)"),
                 sim: bool = SIM, scene: str = SCENE, steps: int = STEPS, step_deg: float = STEP_DEG,
                 arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
+                clutter: str = CLUTTER, direction: str = DIRECTION, record_direction: bool = RECORD_DIRECTION,
+                hand_eye_error: str = HAND_EYE_ERROR, step_jitter: float = STEP_JITTER,
                 yes: bool = typer.Option(False, "--yes", help="do not wait for the operator (scripted runs)")) -> None:
     """Run (or resume) a capture session and write the raw session format."""
     import shlex
 
     from tdof20.capture import run_capture
 
-    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed)
+    cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
+                          direction, record_direction, hand_eye_error, step_jitter)
     resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     summary = run_capture(cfg, out, yes=yes, resume_command=resume)
     for line in summary.lines():
@@ -142,7 +183,8 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
 
 @capture_app.command("verify")
 def capture_verify(session: Path = typer.Argument(..., help="raw session folder")) -> None:
-    """Check a session: every planned frame present, files decodable, checksums matching."""
+    """Check a session: every planned frame present, files decodable, of session.json's camera size
+    and matching their checksums, depths in millimetres (what annotate would refuse)."""
     from tdof20.capture import verify_session
 
     problems = verify_session(session)
@@ -151,7 +193,7 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
             out_console.print(p, highlight=False, soft_wrap=True)
         if len(problems) > 200:
             out_console.print(f"... and {len(problems) - 200} more")
-        console.print(f"[bold red]{len(problems)} problems[/bold red] in {session}")
+        console.print(f"[bold red]{len(problems)} problem{'s' if len(problems) != 1 else ''}[/bold red] in {session}")
         raise typer.Exit(1)
     console.print(f"[green]ok[/green]: {session} is complete and every file matches its checksum")
 
@@ -491,6 +533,12 @@ def main() -> None:
     except KeyboardInterrupt:
         console.print("[bold red]interrupted[/bold red]")
         sys.exit(130)
+    except OSError as e:
+        # the last net: a file the stages did not check themselves (a full disk, a folder that
+        # turned read-only mid-run) is still one line naming it, not a traceback
+        where = f"{e.filename}: " if e.filename else ""
+        console.print(f"[bold red]error:[/bold red] {where}{e.strerror or e}", highlight=False, soft_wrap=True)
+        sys.exit(2)
 
 
 if __name__ == "__main__":
