@@ -303,11 +303,14 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
 # ----------------------------------------------------------------------------------- dataset
 @dataset_app.command("build")
 def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene folders (BOP scene + scene_info.json + models/)"),
-                  out: Path = typer.Option(..., "--out", help="dataset root (created)")) -> None:
+                  out: Path = typer.Option(..., "--out", help="dataset root (created; an existing one only with "
+                                           "the same scenes, or with --add)"),
+                  add: bool = typer.Option(False, "--add", help="add the scenes to the dataset in --out (models, "
+                                           "splits and targets are updated)")) -> None:
     """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
     from tdof20.benchmark.dataset import build_dataset
 
-    s = build_dataset(scenes, out)
+    s = build_dataset(scenes, out, add=add)
     _print_stats(s)
     console.print(f"dataset in {out}")
 

@@ -38,3 +38,29 @@ def test_rejects_what_png_cannot_hold():
                 np.zeros((4, 4, 3), np.uint16)):
         with pytest.raises(ValueError):
             encode_png(bad)
+
+
+def test_header_check_reads_kind_and_size_without_decoding(tmp_path):
+    from tdof20.errors import TdofError
+    from tdof20.formats.io import png_header, write_png
+
+    write_png(tmp_path / "rgb.png", np.zeros((5, 7, 3), np.uint8))
+    write_png(tmp_path / "depth.png", np.zeros((5, 7), np.uint16))
+    write_png(tmp_path / "mask.png", np.zeros((5, 7), np.uint8))
+    assert png_header(tmp_path / "rgb.png", "rgb") == (5, 7)
+    assert png_header(tmp_path / "depth.png", "depth") == (5, 7)
+    assert png_header(tmp_path / "mask.png", "mask") == (5, 7)
+    with pytest.raises(TdofError, match=r"mask\.png: expected a 16-bit single-channel depth PNG, found a grey PNG "
+                                        r"of 8 bits per sample$"):
+        png_header(tmp_path / "mask.png", "depth")
+    with pytest.raises(TdofError, match=r"depth\.png: expected an 8-bit colour PNG, found a grey PNG of 16 bits"):
+        png_header(tmp_path / "depth.png", "rgb")
+    ok, jpg = cv2.imencode(".jpg", np.zeros((5, 7, 3), np.uint8))
+    (tmp_path / "photo.png").write_bytes(jpg.tobytes())
+    with pytest.raises(TdofError, match=r"photo\.png: not a PNG file \(bad signature\): it holds a JPEG image"):
+        png_header(tmp_path / "photo.png")
+    with pytest.raises(TdofError, match="it holds a JPEG image"):  # the full decoder says the same
+        decode_png(jpg.tobytes(), tmp_path / "photo.png")
+    (tmp_path / "cut.png").write_bytes((tmp_path / "rgb.png").read_bytes()[:20])
+    with pytest.raises(TdofError, match=r"cut\.png: corrupt PNG: no image header"):
+        png_header(tmp_path / "cut.png")

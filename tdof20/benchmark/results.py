@@ -15,6 +15,7 @@ Reading is strict: every problem is a :class:`TdofError` naming the file and the
 * header not exactly ``scene_id,im_id,obj_id,score,R,t,time``                  -> error
 * a row without 7 comma-separated fields, R without 9 or t without 3 numbers   -> error
 * a number that does not parse, NaN or inf anywhere, negative ids, obj_id 0    -> error
+* an id beyond int64 (ID_MAX), a file that is not UTF-8 text                    -> error
 * R not a rotation: max |R R^T - I| > 1e-3 (ROTATION_TOLERANCE) or det(R) <= 0  -> error
 * the same (scene, image, object, R, t) on two rows (a duplicate)              -> error
 * rows of one image with different times (bop_toolkit refuses them too)        -> error
@@ -36,7 +37,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import atomic_write_bytes
+from tdof20.formats.io import atomic_write_bytes, read_text
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 FIELDS = HEADER.split(",")
@@ -99,6 +100,8 @@ class Results:
             for name, v in (("scene_id", s), ("im_id", im), ("obj_id", ob)):
                 if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
                     raise TdofError(f"{where}{name} must be an integer, got {v!r}", p)
+                if int(v) > ID_MAX:
+                    raise TdofError(f"{where}{name} {v} is too large for an id (at most {ID_MAX})", p)
             sid[i], iid[i], oid[i] = int(s), int(im), int(ob)
             Ra = np.asarray(Ri, dtype=np.float64)
             ta = np.asarray(ti, dtype=np.float64)
@@ -120,6 +123,19 @@ def _fail(path: Path, lineno: int, message: str) -> TdofError:
     return TdofError(f"line {lineno}: {message}", path)
 
 
+ID_MAX = int(np.iinfo(np.int64).max)  # ids are int64
+_TOO_LARGE = -2
+
+
+def _id_value(text: str) -> int:
+    """A non-negative decimal id; -1 when it is not one, _TOO_LARGE beyond int64."""
+    s = text.strip()
+    if not (s.isdigit() and s.isascii()):
+        return -1
+    v = int(s)
+    return v if v <= ID_MAX else _TOO_LARGE
+
+
 def _is_float(s: str) -> bool:
     try:
         float(s)
@@ -131,18 +147,7 @@ def _is_float(s: str) -> bool:
 def read_results(path: str | Path) -> Results:
     """Read and check a BOP results CSV; any problem is a TdofError naming the file and line."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise TdofError("results file not found", path) from None
-    except (IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        lineno = data[: e.start].count(b"\n") + 1
-        raise _fail(path, lineno, "not UTF-8 text") from None
-    lines = text.splitlines()
+    lines = read_text(path, "results file").splitlines()
     if not lines:
         raise _fail(path, 1, f"empty file: expected the header {HEADER!r}")
     header = ",".join(f.strip() for f in lines[0].split(","))
@@ -173,14 +178,14 @@ def read_results(path: str | Path) -> Results:
         ln.append(k + 1)
     n = len(ln)
     line = np.asarray(ln, np.int64)
-    try:
-        ints = np.array([int(x) if x.strip().isdigit() and x.strip().isascii() else -1 for x in ids],
-                        dtype=np.int64).reshape(n, 3)
-    except ValueError:  # pragma: no cover - isdigit() guards int()
-        ints = np.full((n, 3), -1, np.int64)
+    ints = np.array([_id_value(x) for x in ids], dtype=np.int64).reshape(n, 3)
     if (ints < 0).any():
         r, c = np.argwhere(ints < 0)[0]
-        raise _fail(path, int(line[r]), f"{FIELDS[c]} must be a non-negative integer, got {ids[3 * r + c].strip()!r}")
+        got = ids[3 * r + c].strip()
+        if ints[r, c] == _TOO_LARGE:
+            raise _fail(path, int(line[r]), f"{FIELDS[c]} {got[:30]}{'...' if len(got) > 30 else ''} is too large "
+                                            f"for an id (at most {ID_MAX})")
+        raise _fail(path, int(line[r]), f"{FIELDS[c]} must be a non-negative integer, got {got!r}")
     try:
         nums = np.array(toks, dtype=np.float64).reshape(n, 14)
     except ValueError:
@@ -339,5 +344,5 @@ def write_results_csv(path: str | Path, rows: Iterable[Sequence]) -> Path:
     return path
 
 
-__all__ = ["HEADER", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "read_results", "check_against_dataset",
+__all__ = ["HEADER", "ID_MAX", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "read_results", "check_against_dataset",
            "format_results_csv", "write_results_csv"]

@@ -45,7 +45,7 @@ from tdof20.errors import TdofError
 from tdof20.formats.bop import MODELS_INFO, model_path, read_model_mesh, read_models_info
 from tdof20.formats.io import read_json
 from tdof20.benchmark import metrics as M
-from tdof20.benchmark.results import Results, check_against_dataset, read_results
+from tdof20.benchmark.results import ID_MAX, Results, check_against_dataset, read_results
 
 ADD_THRESHOLD = 0.1  # fraction of the diameter
 PROJ_THRESHOLD = 5.0  # pixels
@@ -263,6 +263,8 @@ def load_targets(path: Path, ds: DatasetView) -> Targets:
             if isinstance(v, bool) or not isinstance(v, int) or v < (1 if k in ("obj_id", "inst_count") else 0):
                 raise TdofError(f"target {i}: {k} must be an integer >= {1 if k in ('obj_id', 'inst_count') else 0},"
                                 f" got {v!r}", path)
+            if v > ID_MAX:
+                raise TdofError(f"target {i}: {k} {v} is too large (at most {ID_MAX})", path)
             vals.append(v)
         key = tuple(vals[:3])
         if key in seen:
@@ -290,6 +292,25 @@ def load_targets(path: Path, ds: DatasetView) -> Targets:
                 raise TdofError(f"scene {sid} image {im}: {cnt} instances of object {ob} to find but the ground "
                                 f"truth has {have}", path)
     return Targets(path, arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3])
+
+
+def require_targets(tg: Targets, ds: DatasetView, split: str | None) -> None:
+    """Refuse to score against no targets (every score would be a meaningless 0 %), saying why."""
+    if len(tg):
+        return
+    if split is None:
+        raise TdofError("no test targets in this file: nothing to score", tg.path)
+    from tdof20.benchmark.dataset import empty_part_reason, split_images
+
+    why = ""
+    if (ds.root / "dataset_info.json").exists():
+        try:
+            has_test = bool(split_images(ds.root, split, "test"))
+        except TdofError:
+            has_test = False
+        why = (f": its test images hold no object instance at least {VISIB_MIN:.0%} visible" if has_test
+               else f": {empty_part_reason(ds.root, split, 'test')}")
+    raise TdofError(f"no test targets in this file: the {split} split of the dataset has none to score{why}", tg.path)
 
 
 # =============================================================================================
@@ -535,10 +556,11 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     """Everything :func:`score` computes, with the per-target errors (for reports and plots)."""
     timings: dict[str, float] = {}
     t0 = _time.perf_counter()
-    res = _as_results(results)
     ds = dataset if dataset is not None else DatasetView(dataset_root)
     tpath = targets_path(ds.root, split, targets)
     tg = load_targets(tpath, ds)
+    require_targets(tg, ds, split)
+    res = _as_results(results)
     timings["read"] = _time.perf_counter() - t0
 
     # checks against the dataset: ids, units
@@ -608,7 +630,7 @@ def score(results: Any, dataset_root: str | Path, split: str | None = None,
 
 
 __all__ = ["ADD_THRESHOLD", "PROJ_THRESHOLD", "AUC_MAX", "KEYS", "DatasetView", "Targets", "ObjectEval",
-           "Evaluation", "load_targets", "targets_path", "evaluate", "score"]
+           "Evaluation", "load_targets", "require_targets", "targets_path", "evaluate", "score"]
 
 
 def score_command(results: list[Path], dataset: Path, split: str | None, targets: Path | None,
@@ -618,10 +640,14 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
     {"<method>": summary, ...}) and the plots plus ``report.md`` (Markdown tables) in DIR, and
     return the text to print: Tables 1-2, every metric per method, warnings and timings."""
     from tdof20.benchmark import report
-    from tdof20.formats.io import atomic_write_bytes, write_json
+    from tdof20.formats.io import atomic_write_bytes, check_output_dir, check_output_file, write_json
 
     if not results:
         raise TdofError("give at least one results file")
+    if json_out is not None:
+        check_output_file(json_out, "--json", "JSON file")
+    if plots is not None:
+        check_output_dir(plots, "--plots", "folder for the plots and report.md")
     ds = DatasetView(dataset)
     tpath = targets_path(ds.root, split, targets)
     evals = [evaluate(r, ds.root, split, targets, dataset=ds) for r in results]

@@ -55,3 +55,25 @@ def part_of(split: str, scene_id: int, im_id: int, steps: int, n_arms: int) -> s
     if split == "hard":
         return "test" if scene_id - 20 in HARD_TEST_MULTI else "train"
     raise TdofError(f"unknown split '{split}' (valid: {', '.join(SPLITS)})")
+
+
+def min_simple_steps() -> int:
+    """The fewest turntable steps per arm position whose TDoF20-simple test arc is not empty."""
+    return next(s for s in range(1, 100) if round(s * PAPER_SIMPLE[1] / sum(PAPER_SIMPLE)) >= 1)
+
+
+def scene_can_serve(split: str, part: str, scene_id: int) -> bool:
+    """Whether images of scene ``scene_id`` can fall in the ``part`` of ``split`` at all."""
+    if split == "simple":
+        return scene_id <= 20
+    return part_of(split, scene_id, 0, 1, 1) == part
+
+
+def part_needs(split: str, part: str) -> str:
+    """What a dataset must hold for a split part to have images (for messages)."""
+    if split == "simple":
+        return "simple needs single-object scenes (single/NN)"
+    if part == "test":
+        return "hard tests on multi-object scenes " + ", ".join(f"multi/{m:02d}" for m in HARD_TEST_MULTI)
+    return ("hard trains on single-object scenes (single/NN) and the multi-object scenes not in its test set "
+            "(multi/01, 03-07, 12-14, 16-20)")

@@ -4,11 +4,16 @@ checked JSON/PNG primitives beneath them (:mod:`tdof20.formats.io`). See ``docs/
 
 from tdof20.formats.io import (
     atomic_write_bytes,
+    check_output_dir,
+    check_output_file,
     decode_png,
     dumps_json,
     encode_png,
+    png_header,
+    read_bytes,
     read_json,
     read_png,
+    read_text,
     sha256_bytes,
     sha256_file,
     write_json,
@@ -40,6 +45,7 @@ from tdof20.formats.bop import (
     BopScene,
     BopSceneWriter,
     bbox_from_mask,
+    check_scene_images,
     dumps_bop_json,
     gt_info_from_masks,
     model_path,
@@ -54,15 +60,16 @@ from tdof20.formats.bop import (
 
 __all__ = [
     # io
-    "atomic_write_bytes", "decode_png", "dumps_json", "encode_png", "read_json", "read_png",
-    "sha256_bytes", "sha256_file", "write_json", "write_png",
+    "atomic_write_bytes", "check_output_dir", "check_output_file", "decode_png", "dumps_json", "encode_png",
+    "png_header", "read_bytes", "read_json", "read_png", "read_text", "sha256_bytes", "sha256_file", "write_json",
+    "write_png",
     # session
     "FORMAT", "JOURNAL_FILE", "PHASES", "SESSION_FILE", "TRUTH_DIR", "ArmPosition", "JournalEntry",
     "RawSession", "SessionInfo", "append_journal", "frame_paths", "read_journal", "read_session",
     "write_frame", "write_session",
     # bop
     "EMPTY_BBOX", "MODELS_INFO", "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "BopScene",
-    "BopSceneWriter", "bbox_from_mask", "dumps_bop_json", "gt_info_from_masks", "pose_from_bop",
+    "BopSceneWriter", "bbox_from_mask", "check_scene_images", "dumps_bop_json", "gt_info_from_masks", "pose_from_bop",
     "pose_to_bop", "read_models_info", "read_scene", "write_models_info", "model_path",
     "read_model_mesh", "write_model_mesh",
 ]

@@ -25,7 +25,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import atomic_write_bytes, dumps_json, read_json, read_png, write_png
+from tdof20.formats.io import atomic_write_bytes, dumps_json, png_header, read_bytes, read_json, read_png, write_png
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"
@@ -333,6 +333,49 @@ def read_scene(scene_dir: str | Path, require_gt: bool = True) -> BopScene:
     return BopScene(d, camera, gt, gt_info)
 
 
+def check_scene_images(scene: BopScene, depth_dirs: Iterable[str] = ("depth_opaque", "depth_restored")) -> tuple[int, int]:
+    """Check every image of a scene from its PNG header, without decoding: ``rgb/`` and
+    ``depth/`` for each image of scene_camera.json, ``mask/`` and ``mask_visib/`` for each
+    instance of scene_gt.json, and the images present in each of ``depth_dirs`` (optional
+    16-bit depths). Each must be a PNG (a JPEG named .png is refused) of its kind: colour 8-bit
+    RGB(A), depths 16-bit grey, masks grey; all of one size, with each image's principal point
+    (cam_K) inside it. Returns (height, width); a problem is a TdofError naming the file."""
+    d = scene.path
+    size: tuple[int, int] | None = None
+    first: Path | None = None
+
+    def check(path: Path, kind: str, why: str) -> None:
+        nonlocal size, first
+        if not path.is_file():
+            raise TdofError(f"file not found: {why}", path)
+        hw = png_header(path, kind)
+        if size is None:
+            size, first = hw, path
+        elif hw != size:
+            raise TdofError(f"the image is {hw[1]}x{hw[0]} (width x height), {first.relative_to(d)} is "
+                            f"{size[1]}x{size[0]}: every image of a scene must have one size", path)
+
+    for im_id in scene.im_ids():
+        why = f"{SCENE_CAMERA} lists image {im_id}"
+        check(d / "rgb" / _im(im_id), "rgb", why)
+        check(d / "depth" / _im(im_id), "depth", why)
+        for sub in depth_dirs:
+            if (d / sub / _im(im_id)).exists():
+                check(d / sub / _im(im_id), "depth", why)
+        for gt_id in range(len(scene.gt.get(im_id, ()))):
+            why = f"{SCENE_GT} lists instance {gt_id} of image {im_id}"
+            check(d / "mask" / _mask_name(im_id, gt_id), "mask", why)
+            check(d / "mask_visib" / _mask_name(im_id, gt_id), "mask", why)
+        h, w = size
+        cx, cy = scene.K(im_id)[0, 2], scene.K(im_id)[1, 2]
+        if not (0 < cx < w and 0 < cy < h):
+            raise TdofError(f"image {im_id}: the principal point (cx, cy) = ({cx:g}, {cy:g}) of cam_K lies outside "
+                            f"its {w}x{h} images: cam_K does not belong to them", d / SCENE_CAMERA)
+    if size is None:
+        raise TdofError("has no images (scene_camera.json lists none)", d)
+    return size
+
+
 # ---------------------------------------------------------------------------------------------
 # writing a scene
 # ---------------------------------------------------------------------------------------------
@@ -529,13 +572,16 @@ def read_model_mesh(path: str | Path, need_faces: bool = True) -> tuple[np.ndarr
     """Read a model (PLY/OBJ/STL, mm) -> vertices (V,3) float64, faces (F,3) int64. One reader
     for every stage; a missing, unreadable, empty or non-finite model raises TdofError naming the
     file (``need_faces=False`` accepts a point cloud: faces then has shape (0,3))."""
+    import io
+
     import trimesh
+    from trimesh.resolvers import FilePathResolver
 
     p = Path(path)
-    if not p.exists():
-        raise TdofError("model file not found", p)
+    data = read_bytes(p, "model file")
     try:
-        geom = trimesh.load(str(p), process=False)
+        geom = trimesh.load(io.BytesIO(data), file_type=p.suffix.lstrip(".").lower() or None, process=False,
+                            resolver=FilePathResolver(str(p)))
     except Exception as e:  # trimesh raises many types on bad files
         raise TdofError(f"cannot read the model ({type(e).__name__}: {e})", p) from None
     if isinstance(geom, trimesh.Scene):
@@ -566,7 +612,7 @@ def write_model_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) 
 
 __all__ = [
     "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "MODELS_INFO", "EMPTY_BBOX", "BopScene",
-    "BopSceneWriter", "read_scene", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop",
+    "BopSceneWriter", "read_scene", "check_scene_images", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop",
     "pose_from_bop", "write_models_info", "read_models_info", "dumps_bop_json", "model_path",
     "read_model_mesh", "write_model_mesh",
 ]

@@ -77,14 +77,42 @@ def write_json(path: str | Path, obj: Any, indent: int | None = 2, fsync: bool =
     atomic_write_bytes(path, (dumps_json(obj, indent) + "\n").encode(), fsync=fsync)
 
 
-def read_json(path: str | Path) -> Any:
+def read_bytes(path: str | Path, what: str = "file", limit: int | None = None) -> bytes:
+    """The bytes of a file (the first ``limit`` bytes when given). The one place files are read
+    for the checked readers: a missing file, a folder, a file on a path through a file or a file
+    that cannot be read is a one-line :class:`TdofError` naming it; ``what`` names it in the
+    message ("results file" -> "results file not found")."""
     path = Path(path)
     try:
-        text = path.read_text()
+        with open(path, "rb") as f:
+            return f.read() if limit is None else f.read(limit)
     except FileNotFoundError:
-        raise TdofError("file not found", path) from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+        raise TdofError(f"{what} not found", path) from None
+    except IsADirectoryError:
+        raise TdofError(f"is a folder, not a {what}", path) from None
+    except NotADirectoryError:
+        raise TdofError(f"{what} not found (a part of its path is a file, not a folder)", path) from None
+    except PermissionError:
+        raise TdofError(f"cannot read the {what}: permission denied", path) from None
+    except OSError as e:
+        raise TdofError(f"cannot read the {what} ({e.strerror or type(e).__name__})", path) from None
+
+
+def read_text(path: str | Path, what: str = "file") -> str:
+    """A UTF-8 text file (a byte-order mark is dropped) as a string; see :func:`read_bytes`.
+    Bytes that are not UTF-8 are a TdofError naming the file and the line they are on."""
+    data = read_bytes(path, what)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[: e.start].count(b"\n") + 1
+        raise TdofError(f"line {line}: not UTF-8 text", path) from None
+
+
+def read_json(path: str | Path, what: str = "file") -> Any:
+    """A JSON file; a missing, unreadable or malformed file is one TdofError naming it."""
+    path = Path(path)
+    text = read_text(path, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
@@ -96,14 +124,41 @@ def read_toml(path: str | Path, what: str = "config file") -> dict:
     import tomllib
 
     path = Path(path)
+    text = read_text(path, what)
     try:
-        return tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise TdofError(f"{what} not found", path) from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise TdofError(f"malformed TOML: {e}", path) from None
-    except (UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
+
+
+def check_output_file(path: str | Path, option: str, what: str = "file") -> Path:
+    """Refuse, before any work, an output file that cannot be written where it is named: a
+    folder of that name, or a file on its path where a folder must be. ``option`` names the
+    option in the message (``--out``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise TdofError(f"{option} names a folder: give the {what} to write", path)
+    _check_parents(path, option)
+    return path
+
+
+def check_output_dir(path: str | Path, option: str, what: str = "folder") -> Path:
+    """Refuse, before any work, an output folder that is an existing file or lies under one."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise TdofError(f"{option} names a file: give a {what}", path)
+    _check_parents(path, option)
+    return path
+
+
+def _check_parents(path: Path, option: str) -> None:
+    for up in path.absolute().parents:
+        if up.exists():
+            if not up.is_dir():
+                raise TdofError(f"{option}: {up} is a file, so nothing can be written under it", path)
+            if not os.access(up, os.W_OK | os.X_OK):
+                raise TdofError(f"{option}: no permission to write in {up}", path)
+            return
 
 
 def _png_chunk(tag: bytes, data: bytes) -> bytes:
@@ -152,7 +207,7 @@ def write_png(path: str | Path, image: np.ndarray, compression: int = 1) -> byte
 def decode_png(data: bytes, path: str | Path = "<bytes>", kind: str = "any") -> np.ndarray:
     """Decode PNG bytes. kind: 'rgb' (H,W,3 uint8), 'depth' (H,W uint16), 'mask' (H,W uint8) or 'any'."""
     if not data.startswith(PNG_SIGNATURE):
-        raise TdofError("not a PNG file (bad signature)", path)
+        raise _not_png(data, path)
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise TdofError("corrupt PNG: cannot be decoded", path)
@@ -171,16 +226,45 @@ def decode_png(data: bytes, path: str | Path = "<bytes>", kind: str = "any") -> 
     return arr
 
 
+_OTHER_FORMATS = ((b"\xff\xd8\xff", "JPEG"), (b"BM", "BMP"), (b"GIF8", "GIF"), (b"II*\x00", "TIFF"),
+                  (b"MM\x00*", "TIFF"), (b"RIFF", "WebP"))
+PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+
+
+def _not_png(data: bytes, path: str | Path) -> TdofError:
+    fmt = next((name for sig, name in _OTHER_FORMATS if data.startswith(sig)), None)
+    if fmt is not None:
+        return TdofError(f"not a PNG file (bad signature): it holds a {fmt} image, whatever its name says", path)
+    return TdofError("not a PNG file (bad signature)", path)
+
+
+def png_header(path: str | Path, kind: str = "any") -> tuple[int, int]:
+    """(height, width) of a PNG from its header alone (the first 33 bytes; nothing is decoded),
+    checked against ``kind`` as :func:`decode_png` would: 'rgb' an 8-bit RGB(A) image, 'depth' a
+    16-bit grey image, 'mask' a grey image of at most 8 bits. A file that is not a PNG (a JPEG
+    named .png), has no image header or holds another kind of image is a TdofError naming it."""
+    path = Path(path)
+    data = read_bytes(path, "image file", limit=33)
+    if not data.startswith(PNG_SIGNATURE):
+        raise _not_png(data, path)
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise TdofError("corrupt PNG: no image header (IHDR) after the signature", path)
+    w, h, bits, colour = struct.unpack(">IIBB", data[16:26])
+    if w == 0 or h == 0:
+        raise TdofError(f"corrupt PNG: its header gives a {w}x{h} image", path)
+    found = f"a {PNG_COLOUR_TYPES.get(colour, f'colour type {colour}')} PNG of {bits} bits per sample"
+    if kind == "rgb" and not (bits == 8 and colour in (2, 6)):
+        raise TdofError(f"expected an 8-bit colour PNG, found {found}", path)
+    if kind == "depth" and not (bits == 16 and colour == 0):
+        raise TdofError(f"expected a 16-bit single-channel depth PNG, found {found}", path)
+    if kind == "mask" and not (bits <= 8 and colour == 0):
+        raise TdofError(f"expected an 8-bit single-channel mask PNG, found {found}", path)
+    return h, w
+
+
 def read_png(path: str | Path, kind: str = "any") -> np.ndarray:
     """Read and check a PNG (see :func:`decode_png`); any problem is a one-line TdofError."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise TdofError("file not found", path) from None
-    except (IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
-    return decode_png(data, path, kind)
+    return decode_png(read_bytes(path), Path(path), kind)
 
 
 def sha256_bytes(data: bytes) -> str:

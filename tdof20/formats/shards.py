@@ -30,6 +30,7 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.formats.bop import read_models_info, read_scene
+from tdof20.formats.io import check_output_file
 
 IMAGE_KEYS = ("rgb", "depth", "depth_restored", "label", "instance")
 
@@ -38,9 +39,11 @@ def pack_shard(images: list[tuple[int, int]], scenes_root: str | Path, out: str 
                models_dir: str | Path | None = None, progress_bar=None) -> Path:
     """Write the images (scene_id, im_id) of a dataset into one HDF5 file, atomically."""
     scenes_root = Path(scenes_root)
-    out = Path(out)
+    out = check_output_file(out, "the shard", "HDF5 file")
     if not images:
-        raise TdofError("nothing to pack: the split part has no images")
+        a = attrs or {}
+        what = f"the {a['split']} split's {a['part']} part" if "split" in a and "part" in a else "the list of images"
+        raise TdofError(f"nothing to pack: {what} has no images", a.get("dataset", scenes_root))
     scenes = {}
     for sid in sorted({s for s, _ in images}):
         scenes[sid] = read_scene(scenes_root / f"{sid:06d}")
