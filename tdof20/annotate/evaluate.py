@@ -55,6 +55,7 @@ __all__ = ["evaluate_scene", "evaluate_command", "model_centre", "TARGETS"]
 TARGETS = {"motion_rot_deg": ("<=", 0.1), "motion_trans_mm": ("<=", 1.0), "surface_mm": ("<=", 1.0),
            "iou_visib": (">=", 0.97)}
 _CHUNK = 256  # images per batch of surface-distance queries
+WRONG_MIN_VISIBLE_PX = 50  # a wrong visible mask is judged where the truth shows at least this many pixels
 
 
 # ---------------------------------------------------------------------------------------------
@@ -275,7 +276,19 @@ def evaluate_scene(scene_dir: str | Path, truth_dir: str | Path, max_frames: int
     rng = np.random.default_rng(seed)
     per_obj: dict[int, dict[str, list]] = {}
     low: list[dict] = []
+    wrong: list[dict] = [{"im_id": e["im_id"], "obj_id": e["obj_id"], "surface_mm": None, "iou_visib": None,
+                          "why": "an instance the truth does not hold"} for e in extra_inst]
     rows: list[dict] = []
+    infos: dict[int, float] = {}
+
+    def diameter(obj_id: int) -> float:
+        if obj_id not in infos:
+            from tdof20.formats.bop import read_models_info
+
+            info = read_models_info(tru.path / "models")
+            infos.update({int(k): float(v["diameter"]) for k, v in info.items()})
+        return infos[obj_id]
+
     workers = workers or min(4, os.cpu_count() or 1)
     for b in sorted(tracks):
         tr, o = tracks[b], track_obj[b]
@@ -294,6 +307,18 @@ def evaluate_scene(scene_dir: str | Path, truth_dir: str | Path, max_frames: int
         if per_frame:
             rows += [{"im_id": int(im), "obj_id": int(o), "surface_mm": float(d), "iou_full": float(f),
                       "iou_visib": float(v)} for im, d, (f, v) in zip(tr["im"], surf, iou)]
+        diam = diameter(o)
+        for im, d, (f, v) in zip(tr["im"], surf, iou):
+            why = []
+            if d > 0.1 * diam:
+                why.append(f"surface {d:.1f} mm > 10 % of the diameter ({0.1 * diam:.1f} mm)")
+            gi = tru.gt_info.get(im) or []
+            px = gi[b]["px_count_visib"] if b < len(gi) and "px_count_visib" in gi[b] else None
+            if v < 0.5 and (px is None or px >= WRONG_MIN_VISIBLE_PX):
+                why.append(f"visible IoU {v:.2f} < 0.5")
+            if why:
+                wrong.append({"im_id": int(im), "obj_id": int(o), "surface_mm": round(float(d), 3),
+                              "iou_visib": round(float(v), 4), "why": "; ".join(why)})
         for im, (f, v) in zip(tr["im"], iou):
             if v < iou_warn:
                 low.append({"im_id": int(im), "obj_id": int(o), "iou_visib": round(float(v), 4),
@@ -327,12 +352,16 @@ def evaluate_scene(scene_dir: str | Path, truth_dir: str | Path, max_frames: int
                      "distance": distance, "iou_warn": iou_warn, "seed": seed},
         "objects": objects, "all": all_,
         "low_visib_iou": low,
+        "wrong_labels": sorted(wrong, key=lambda d: (d["im_id"], d["obj_id"])),
         "definitions": {
             "motion_rot_deg": "angle of R_lab R_true^T for M_ij = T_j inv(T_i), pairs: consecutive + sampled far",
             "motion_trans_mm": "|M_lab c - M_true c|, c = the object's centre (true model bbox centre) in image i",
             "surface_mm": "symmetric mean distance between the posed labelled and true models' surfaces"
                           + (" (samples to triangles)" if distance == "mesh" else " (samples to samples)"),
-            "iou_full": "IoU of mask/ (full silhouette)", "iou_visib": "IoU of mask_visib/ (visible part)"},
+            "iou_full": "IoU of mask/ (full silhouette)", "iou_visib": "IoU of mask_visib/ (visible part)",
+            "wrong_labels": "labelled instances with a surface distance over 10 % of the object's diameter, a "
+                            f"visible IoU under 0.5 (where the truth shows at least {WRONG_MIN_VISIBLE_PX} visible "
+                            "pixels), or no true instance"},
     }
     if per_frame:
         result["frames"] = sorted(rows, key=lambda d: (d["im_id"], d["obj_id"]))

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import os
-import struct
 import time
 import uuid
 from dataclasses import asdict, dataclass, field
@@ -49,7 +48,8 @@ from tdof20.errors import TdofError
 from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes,
                             decode_png, dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
                             sha256_bytes, write_png)
-from tdof20.formats.io import PNG_SIGNATURE
+from tdof20.formats.io import png_header
+from tdof20.formats.session import frame_size_problem
 from tdof20.geometry import PinholeCamera
 
 METHODS = ("raycast", "far_to_near")
@@ -274,9 +274,10 @@ class _LabelJob:
             img = decode_png(data, p, kind)
             h, w = img.shape[:2]
         else:   # copied as it is: its header must still say what the scene's readers expect
-            w, h = _png_size(data, p, kind)
-        if (h, w) != (st.camera.height, st.camera.width):
-            raise TdofError(f"image is {w}x{h}, session camera is {st.camera.width}x{st.camera.height}", p)
+            h, w = png_header(p, kind, data)
+        problem = frame_size_problem((h, w), st.camera, kind)
+        if problem:
+            raise TdofError(problem, p)
         return data, img
 
     def label_frame(self, st: _WorkerState, spec: tuple) -> dict:
@@ -380,19 +381,6 @@ def gate_check(lab, opaque_mm: np.ndarray, cfg: LabelConfig) -> list[dict]:
                     "median_mm": round(float(np.median(np.abs(dz))), 3),
                     "ok": agree >= cfg.gate_min_agree and see <= cfg.gate_max_see_through})
     return out
-
-
-def _png_size(data: bytes, path: Path, kind: str) -> tuple[int, int]:
-    """(width, height) from a PNG's header, checking that it is a PNG of the kind (8-bit colour,
-    16-bit grey depth) without decoding it; anything else is a one-line TdofError naming the file."""
-    if not data.startswith(PNG_SIGNATURE) or len(data) < 33 or data[12:16] != b"IHDR":
-        raise TdofError("not a PNG file (bad signature or header)", path)
-    w, h, bits, colour = struct.unpack(">IIBB", data[16:26])
-    want = {"rgb": ((8,), (2, 6)), "depth": ((16,), (0,))}[kind]
-    if bits not in want[0] or colour not in want[1]:
-        raise TdofError(f"expected {'an 8-bit colour' if kind == 'rgb' else 'a 16-bit single-channel depth'} PNG, "
-                        f"the header says {bits}-bit colour type {colour}", path)
-    return w, h
 
 
 def _gt_info(full: np.ndarray, vis: np.ndarray, depth: np.ndarray) -> dict:

@@ -903,7 +903,8 @@ def _summary(ctx: _Ctx, state: _State, run: dict, warnings: list[str]) -> dict:
                                               "seconds", "frames_per_s", "method", "executor", "workers")}
     if ctx.eval_file.exists():
         ev = read_json(ctx.eval_file)
-        s["evaluation"] = {"all": ev.get("all"), "objects": ev.get("objects")}
+        s["evaluation"] = {"all": ev.get("all"), "objects": ev.get("objects"),
+                           "wrong_labels": len(ev.get("wrong_labels") or [])}
     report = ctx.out / "qa" / "report.html"
     if report.exists():
         s["report"] = str(report)
@@ -1110,7 +1111,8 @@ def summary_text(summary: dict) -> str:
             v = (ev.get(k) or {}).get("median")
             return "-" if v is None else f"{v:.3f}"
         lines.append(f"  vs truth (median): motion {med('motion_rot_deg')} deg / {med('motion_trans_mm')} mm, "
-                     f"surface {med('surface_mm')} mm, visible IoU {med('iou_visib')}")
+                     f"surface {med('surface_mm')} mm, visible IoU {med('iou_visib')}; "
+                     f"{summary['evaluation'].get('wrong_labels', 0)} wrong labels")
     for w in summary.get("warnings") or []:
         lines.append(f"  warning: {w}")
     for p in summary.get("problems") or []:

@@ -20,13 +20,24 @@ Stages, per arm position (:func:`register_session`):
 1. table plane by RANSAC (open3d ``segment_plane``) on the centre of a few frames, the plane with a
    normal near the robot's vertical (the prior ``R_base_cam^T e_z``) wins; the normal, oriented
    towards the camera, is the first estimate of the turntable axis;
-2. a first axis point from the centroid of what stands on the table over the turn;
+2. a first axis point from **what moves**: per sampled frame the points that stand there and not
+   in another sampled frame (the objects; the static room, clutter beside the table and the
+   featureless disk drop out), and between consecutive sampled frames the centre of the turn
+   that carries one onto the other (``_turn_between``: a 2D rotation about the table normal by
+   the nominal angle, centroid start, trimmed ICP; the centre solves ``(I - R) c = t``); the
+   median centre over the pairs. Only when nothing moves enough to tell (a round cup on the axis)
+   the centroid of what stands on the table. Before any arm, the same measurement over the whole
+   circle checks ``turntable.direction`` and ``step_deg`` (``_check_turntable``): a direction left
+   out of session.json is taken from the data, one the data contradicts and a step angle it does
+   not show are refused;
 3. pass 1: pairwise point-to-plane ICP (multi-scale, coarse scales only) between frames 1 step
    and ~30 deg apart (the 360 deg loop closes itself where the plan covers a full turn), each
    started from the known step angle about the axis, on points cropped to the turntable volume (a
-   cylinder about the axis above the table plane: the static room never pulls), then a pose graph
-   (open3d ``global_optimization``) over the frames connected to step 0; the axis (direction and
-   point) is refitted to the poses (``_fit_axis``), and the table radius from the plane's inliers;
+   cylinder about the axis above the table plane), then a pose graph (open3d
+   ``global_optimization``) over the frames connected to step 0; the axis (direction and point) is
+   refitted to the poses (``_fit_axis``), and the table radius from the plane's points
+   (``_disk_radius``: where the plane band stops filling every direction about the axis — a
+   cabinet's face beside the table fills only a few);
 4. pass 2: the same at every scale and with edges ~1 step / 15 / 30 deg apart, re-cropped about
    the refined axis; edges that disagree with the turntable prior (or fit badly) are dropped
    before the optimisation; the axis is refitted again;
@@ -36,9 +47,12 @@ Stages, per arm position (:func:`register_session`):
    mm as the displacement of the axis point. Frames beyond the thresholds, or without any
    registration that agrees with the prior, are flagged (with a reason) and left out of the fused
    clouds; they keep their prior pose;
-6. arm positions: the robot prior ``inv(T_base_cam(0)) @ T_base_cam(a)`` is refined by ICP
-   between the arms' fused turntable clouds; a correction beyond the limits keeps the prior and
-   flags the arm (and so all its frames).
+6. arm positions: every arm's turntable axis, moved into the reference camera through the
+   robot's poses, must agree with the others' (``_cross_check_axes``: within ``arm_axis_max_mm``
+   at the table top and ``arm_axis_max_deg``; the median of three or more, each other for two);
+   the robot prior ``inv(T_base_cam(0)) @ T_base_cam(a)`` is refined by ICP between the arms'
+   fused turntable clouds; a correction beyond the limits keeps the prior and flags the arm, and
+   the axes are checked again after the ICP. A flagged arm has none of its frames labelled.
 
 Why the pairwise ICP is regularised towards the turntable prior (``prior_weighted_icp``): depth
 is quantised (1 mm steps at ``depth_scale`` 1), and the quantisation terraces are fixed in the
@@ -63,7 +77,7 @@ import numpy as np
 from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_json, write_json
-from tdof20.formats.session import RawSession
+from tdof20.formats.session import RawSession, depth_units_problem
 from tdof20.geometry.transforms import invert, rotation_about_axis
 from tdof20.o3d import o3d
 from tdof20.progress import progress as _progress
@@ -142,6 +156,8 @@ class RegistrationConfig:
     arm_prior_sigma_mm: float = 10.0
     max_arm_correction_deg: float = 5.0
     max_arm_correction_mm: float = 50.0
+    arm_axis_max_mm: float = 15.0             # every arm's turntable axis within this of the others' (at the
+    arm_axis_max_deg: float = 3.0             # table top) and this in direction, through the arms' poses
 
     def __post_init__(self) -> None:
         check_ranges(self, "register", positive=(
@@ -151,7 +167,8 @@ class RegistrationConfig:
             "min_points", "max_source_points", "pass1_levels", "prior_sigma_deg", "prior_sigma_mm",
             "prior_sigma_r_mm", "pass1_edge_max_deg", "pass1_edge_max_mm", "edge_max_deg", "edge_max_mm",
             "model_voxel_mm", "frame_icp_dist_mm", "max_rmse_mm", "max_residual_deg", "max_residual_mm",
-            "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm"),
+            "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm",
+            "arm_axis_max_mm", "arm_axis_max_deg"),
             non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
                           "pass2_first_level"),
             fraction=("plane_window", "plane_max_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
@@ -243,6 +260,7 @@ class RegistrationResult:
     arms: list[ArmRegistration]
     config: dict = field(default_factory=dict)
     timing_s: dict = field(default_factory=dict)
+    turntable: dict = field(default_factory=dict)   # direction used and where it came from
 
     def frame(self, arm: int, step: int) -> FrameRegistration:
         for f in self.frames:
@@ -276,7 +294,7 @@ class RegistrationResult:
     def to_dict(self) -> dict:
         return {"format": RESULT_FORMAT, "version": RESULT_VERSION, "scene_id": self.scene_id,
                 "steps": self.steps, "step_deg": self.step_deg, "n_arms": self.n_arms,
-                "config": self.config, "timing_s": self.timing_s,
+                "config": self.config, "timing_s": self.timing_s, "turntable": self.turntable,
                 "arms": [a.to_dict() for a in self.arms], "frames": [f.to_dict() for f in self.frames]}
 
     @classmethod
@@ -290,7 +308,7 @@ class RegistrationResult:
             return cls(str(d["scene_id"]), int(d["steps"]), float(d["step_deg"]), int(d["n_arms"]),
                        [FrameRegistration.from_dict(f) for f in d["frames"]],
                        [ArmRegistration.from_dict(a) for a in d["arms"]], dict(d.get("config", {})),
-                       dict(d.get("timing_s", {})))
+                       dict(d.get("timing_s", {})), dict(d.get("turntable", {})))
         except (KeyError, TypeError, ValueError) as e:
             raise TdofError(f"malformed registration result ({type(e).__name__}: {e})", path) from None
 
@@ -584,6 +602,8 @@ class _Arm:
         self.axis_point = np.zeros(3)
         self.radius = 0.0
         self.steps = steps
+        self.axis_source = ""
+        self.moving = np.zeros((0, 3))            # points that moved between sampled frames (the objects)
 
 
 def _load_points(session: RawSession, cfg: RegistrationConfig, arm: int, step: int,
@@ -630,6 +650,251 @@ def _moving_points(session: RawSession, cfg: RegistrationConfig, arm: int, steps
             m = (a > 0) & (b > 0) & (np.abs(a - b) > np.maximum(10.0, 0.03 * np.minimum(a, b)))
             out.append(cam.to_points(np.where(m, np.minimum(a, b), 0))[0])
     return np.concatenate(out).astype(np.float64) if out else np.zeros((0, 3))
+
+
+def _frame_moving_points(imgs: list[np.ndarray], cam, thr_mm: float = 10.0) -> list[np.ndarray]:
+    """Per depth image (mm), the points of what stands there in that frame and not in another
+    one of the list (its depth nearer by more than ``thr_mm``, or 3 %): the objects, which turn
+    with the table. The static room, clutter beside the table and the featureless disk drop out."""
+    out = []
+    for i, a in enumerate(imgs):
+        m = np.zeros(a.shape, bool)
+        for j, b in enumerate(imgs):
+            if j != i:
+                m |= (a > 0) & (b > 0) & (b - a > np.maximum(thr_mm, 0.03 * a))
+        out.append(cam.to_points(np.where(m, a, 0))[0].astype(np.float64))
+    return out
+
+
+def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit u, v with (u, v, n) right-handed: a rotation by +theta about n turns u towards v."""
+    e = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = np.cross(n, e)
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def _turn_between(P: np.ndarray, Q: np.ndarray, n: np.ndarray, origin: np.ndarray, theta_deg: float | None,
+                  tol_mm: float = 6.0, max_radius_mm: float = 450.0) -> tuple[float, np.ndarray, float, bool]:
+    """How the turning part moved from cloud P to cloud Q: a rotation by theta about an axis
+    along ``n`` through an unknown centre. ``theta_deg`` given (the turntable's nominal turn):
+    the rotation is kept and only the centre is sought; None: theta too, over the whole turn
+    (the direction and step checks). Returns (theta in degrees, counter-clockwise about n; the
+    centre on the plane through ``origin``; the share of P within ``tol_mm`` of Q after the
+    motion; whether the shape pins the angle — False when turns 30 deg or more away from the best
+    fit nearly as well, as for a round object, and then theta says nothing). Over the whole turn
+    only turns about a centre within ``max_radius_mm`` of ``origin`` count: a small moving part
+    shifted sideways also fits a near-zero turn about a far-away centre, which no turntable makes.
+
+    Works in the table plane's 2D coordinates (heights kept for the matching): for each trial
+    angle the translation that aligns the centroids, then a trimmed ICP (translation only, or
+    rotation and translation); the centre solves (I - R) c = t."""
+    from scipy.spatial import cKDTree
+
+    u, v = _plane_basis(n)
+    B = np.stack([u, v], axis=1)
+    p2, q2 = (P - origin) @ B, (Q - origin) @ B
+    ph, qh = (P - origin) @ n, (Q - origin) @ n
+    rng = np.random.default_rng(0)
+    if len(p2) > 3000:
+        idx = rng.choice(len(p2), 3000, replace=False)
+        p2, ph = p2[idx], ph[idx]
+    tree = cKDTree(np.column_stack([q2, qh]))
+
+    def rot(a: float) -> np.ndarray:
+        c, s_ = math.cos(a), math.sin(a)
+        return np.array([[c, -s_], [s_, c]])
+
+    def score(R2, t2) -> float:
+        d, _ = tree.query(np.column_stack([p2 @ R2.T + t2, ph]), distance_upper_bound=tol_mm)
+        return float(np.mean(np.isfinite(d)))
+
+    def refine(a: float, free: bool) -> tuple[float, np.ndarray, float]:
+        R2 = rot(a)
+        t2 = q2.mean(0) - p2.mean(0) @ R2.T
+        for it in range(15):
+            x = p2 @ R2.T + t2
+            d, j = tree.query(np.column_stack([x, ph]), distance_upper_bound=4 * tol_mm if it < 5 else 2 * tol_mm)
+            ok = np.isfinite(d)
+            if ok.sum() < 10:
+                break
+            a_, b_ = p2[ok], q2[j[ok]]
+            if free:
+                ca, cb = a_.mean(0), b_.mean(0)
+                U, _, Vt = np.linalg.svd((a_ - ca).T @ (b_ - cb))
+                D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+                R2 = Vt.T @ D @ U.T
+                t2 = cb - ca @ R2.T
+            else:
+                t2 = (b_ - a_ @ R2.T).mean(0)
+        return math.atan2(R2[1, 0], R2[0, 0]), t2, score(R2, t2)
+
+    free = theta_deg is None
+    trials = np.radians(np.arange(-180.0, 180.0, 4.0) if free else np.array([theta_deg]))
+    def centre(a: float, t2: np.ndarray) -> np.ndarray | None:
+        if abs(math.sin(a / 2)) <= 0.15:
+            return None
+        return np.linalg.solve(np.eye(2) - rot(a), t2)
+
+    coarse = np.array([score(rot(a), q2.mean(0) - p2.mean(0) @ rot(a).T) for a in trials])
+    fits = [refine(trials[i], free) for i in np.argsort(-coarse)[:8 if free else 1]]
+    if free:   # turns about a centre on the table only
+        fits = [f for f in fits if (c := centre(f[0], f[1])) is not None and np.linalg.norm(c) <= max_radius_mm]
+        if not fits:
+            return 0.0, origin, 0.0, False
+    a, t2, sc = max(fits, key=lambda r: r[2])
+    pinned = True
+    if free:
+        far = np.abs(np.degrees(np.angle(np.exp(1j * (trials - a))))) >= 30.0
+        pinned = bool(coarse[far].max(initial=0.0) <= 0.6 * max(coarse.max(), 1e-9))
+    c2 = centre(a, t2)
+    return math.degrees(a), origin + B @ (np.zeros(2) if c2 is None else c2), sc, pinned
+
+
+def _wrap_deg(x: float) -> float:
+    return (x + 180.0) % 360.0 - 180.0
+
+
+def _sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int], n: np.ndarray,
+                    d: float, sign: float, check: bool = False) -> tuple[list[dict], np.ndarray]:
+    """The turn of the moving part between consecutive sampled frames of an arm position:
+    [{k0, k1, nominal_deg, theta_deg, centre, score}] with theta measured near the nominal turn
+    ``sign * (k1 - k0) * step_deg``, for the pairs whose nominal turn is far enough from 0 and
+    180 deg to pin the centre. ``check``: every pair, also measured over the whole turn and near
+    the reversed turn (``free``, ``reversed``: (theta, score)), for the direction and step checks.
+    Also returns the moving points of all sampled frames (N,3): where the objects stand."""
+    cam = session.info.camera
+    sd = session.info.step_deg
+    imgs = []
+    for k in steps:
+        z = session.load_depth_mm(cfg.phase, arm, k)
+        imgs.append(np.where((z >= cfg.min_depth_mm) & (z <= cfg.max_depth_mm), z, 0).astype(np.float32))
+    foot = -n * d
+    clouds = []
+    for pts in _frame_moving_points(imgs, cam):
+        h = pts @ n + d
+        clouds.append(pts[(h > 5.0) & (h < cfg.crop_height_mm)])
+    out = []
+    for i in range(len(steps) - 1):
+        P, Q = clouds[i], clouds[i + 1]
+        nominal = (steps[i + 1] - steps[i]) * sd
+        if len(P) < 100 or len(Q) < 100 or (not check and abs(math.sin(math.radians(nominal) / 2)) < 0.15):
+            continue
+        if check and np.linalg.norm((P.mean(0) - Q.mean(0)) - ((P.mean(0) - Q.mean(0)) @ n) * n) < 15.0:
+            continue   # the moving part's centroid hardly moved (a round object near the axis): no turn to see
+        theta, centre, sc, _ = _turn_between(P, Q, n, foot, sign * nominal)
+        e = {"k0": steps[i], "k1": steps[i + 1], "nominal_deg": nominal, "theta_deg": theta, "centre": centre,
+             "score": sc}
+        if check:
+            th, _, sc_free, pinned = _turn_between(P, Q, n, foot, None, max_radius_mm=cfg.max_crop_radius_mm)
+            e["free"], e["pinned"] = (th, sc_free), pinned
+            e["reversed"] = _turn_between(P, Q, n, foot, -sign * nominal)[0::2]
+        out.append(e)
+    return out, (np.concatenate(clouds) if clouds else np.zeros((0, 3)))
+
+
+def _check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, recorded: bool) -> float:
+    """The turning direction and step angle the opaque depth shows, against session.json: returns
+    the sign to use (+1 counter-clockwise about the table normal towards the camera, -1
+    clockwise). Per pair of sampled frames of the first arm position whose moving part pins the
+    turn (not a round object: :func:`_turn_between`), its fit (share of points within 6 mm) is
+    compared at the nominal turn, at the reversed turn and at the best turn over the whole circle:
+    the nominal explains the data when its fit is within 85 % of the best (or 0.6 at least); the
+    reversed one when it does and the nominal fits half as well; another turn when the nominal
+    fits half as well as the best. The pairs of every arm position vote (until three agree); a
+    majority of two pairs at least decides; anything less keeps the recorded (or default) direction. A direction left out of
+    session.json is taken from the data; a recorded one that the data contradicts, or a step
+    angle the data does not show, is a one-line TdofError naming session.json. Silent (keeps
+    ``sign``) when the moving part is too small or too symmetric to tell (one round cup on the
+    axis turns without changing the depth)."""
+    info = session.info
+    src = session.path / "session.json"
+    votes: list[tuple[str, int, dict]] = []
+    for arm in range(info.n_arms):
+        available = [k for k in range(info.steps) if session.has_frame(cfg.phase, arm, k)]
+        if len(available) < 2:
+            continue
+        sample = [available[i] for i in
+                  np.unique(np.linspace(0, len(available) - 1, cfg.plane_frames).round().astype(int))]
+        prior_up = info.T_base_cam(arm)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        try:
+            n, d, _ = _table_plane(session, cfg, arm, sample, prior_up)
+            pairs = [p for p in _sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)[0]
+                     if p["free"][1] >= 0.45 and p["pinned"]]
+        except TdofError:
+            continue
+        for p in pairs:
+            best = max(p["score"], p["reversed"][1], p["free"][1])
+            if p["score"] >= 0.85 * best or p["score"] >= 0.6:
+                v = "nominal"
+            elif p["reversed"][1] >= 0.85 * best and p["score"] <= 0.5 * p["reversed"][1]:
+                v = "reversed"
+            elif p["score"] <= 0.5 * best:
+                v = "other"
+            else:
+                v = "unclear"
+            votes.append((v, arm, p))
+        decided = [v for v, _, _ in votes if v != "unclear"]
+        if len(decided) >= 3 and len(set(decided[:3])) == 1:
+            break
+    names = [v for v, _, _ in votes]
+    verdict = max(("nominal", "reversed", "other"), key=names.count) if votes else "nominal"
+    if verdict == "nominal" or names.count(verdict) < 2 or names.count(verdict) * 2 <= len(names):
+        return sign
+    if verdict == "other":   # another step angle: the pairs must agree on it
+        per_step = np.array([abs(p["free"][0]) / (p["k1"] - p["k0"]) for v, _, p in votes if v == "other"])
+        if np.abs(per_step - np.median(per_step)).max() > 0.25 * np.median(per_step):
+            return sign
+    _, arm, p = next(x for x in votes if x[0] == verdict)
+    theta = p["reversed"][0] if verdict == "reversed" else p["free"][0]
+    turned = f"the table turned {abs(theta):.1f} deg between steps {p['k0']} and {p['k1']} of arm {arm}"
+    if verdict == "reversed":
+        if recorded:
+            seen = "clockwise" if sign > 0 else "counter-clockwise"
+            raise TdofError(f"turntable.direction says '{'ccw' if sign > 0 else 'cw'}', but in the opaque depth "
+                            f"{turned} {seen} (seen from above): correct turntable.direction, or leave it out to "
+                            f"take it from the data", src)
+        return -sign
+    raise TdofError(f"{turned} ({theta:+.1f} deg about the table normal), but turntable.step_deg = "
+                    f"{info.step_deg:g} says {sign * p['nominal_deg']:+.1f} deg for those {p['k1'] - p['k0']} "
+                    f"steps: is step_deg right?", src)
+
+
+def _disk_radius(clouds: list[np.ndarray], n: np.ndarray, p: np.ndarray, cam, cfg: RegistrationConfig) -> float | None:
+    """The turntable top's radius (mm) from the table-plane points of the sampled frames: the
+    disk fills every direction about the axis out to its edge, while what else touches the plane
+    band (a cabinet's face, a box beside the table) fills only a few. Rings of 5 mm (3 pixels at
+    least), sectors of 10 deg: the radius is where the share of in-view sectors holding plane
+    points falls below half of the inner rings' share. None when there are too few points."""
+    pts = np.concatenate(clouds) if clouds else np.zeros((0, 3))
+    h, r = _height_radius(pts, n, p)
+    keep = (np.abs(h) < cfg.plane_dist_mm) & (r < cfg.max_crop_radius_mm)
+    if keep.sum() < 200:
+        return None
+    u, v = _plane_basis(n)
+    q = pts[keep] - p
+    phi = np.degrees(np.arctan2(q @ v, q @ u)) % 360.0
+    width = max(5.0, 3.0 * float(np.linalg.norm(p)) / cam.fx)   # rings of at least 3 pixels
+    ring = (r[keep] // width).astype(int)
+    n_rings, n_sec = int(cfg.max_crop_radius_mm // width) + 1, 36
+    held = np.zeros((n_rings, n_sec), bool)
+    held[ring, (phi // 10.0).astype(int) % n_sec] = True
+    # which (ring, sector) cells the camera sees at all (their centre inside the image, in front)
+    rc = (np.arange(n_rings) + 0.5) * width
+    sc = np.radians((np.arange(n_sec) + 0.5) * 10.0)
+    cells = p + rc[:, None, None] * (np.cos(sc)[None, :, None] * u + np.sin(sc)[None, :, None] * v)
+    uv, z = cam.project(cells.reshape(-1, 3))
+    inview = ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+              & (uv[:, 1] < cam.height)).reshape(n_rings, n_sec)
+    share = np.where(inview.sum(1) > 0, (held & inview).sum(1) / np.maximum(inview.sum(1), 1), np.nan)
+    inner = share[(rc > 50.0) & (rc < 0.5 * cfg.max_crop_radius_mm)]
+    if not np.isfinite(inner).any():
+        return None
+    level = 0.5 * float(np.nanmedian(inner))
+    for i in range(n_rings):
+        if rc[i] > 50.0 and np.isfinite(share[i]) and share[i] < level:
+            return float(i * width)
+    return float(cfg.max_crop_radius_mm)
 
 
 def _table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int],
@@ -745,6 +1010,9 @@ def _pose_graph_pass(A: _Arm, pyr: dict[int, _Pyramid], cfg: RegistrationConfig,
         if ok:
             edges.append((i, j, T, info))
     # the pose graph over the frames connected to the first one (open3d refuses a disconnected graph)
+    if not steps:
+        raise TdofError(f"arm {A.arm}: no frame keeps enough depth points inside the turntable volume "
+                        f"(crop radius {A.radius:.0f} mm about the axis)")
     k0 = steps[0]
     connected = _connected(steps, [(i, j) for i, j, _, _ in edges])[k0]
     nodes = [k for k in steps if k in connected]
@@ -816,13 +1084,22 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     # optical axis foot on the plane: a first guess of the table centre
     ray = np.array([0.0, 0.0, 1.0])
     foot = ray * (-d / (n @ ray)) if abs(n @ ray) > 1e-3 else -n * d
-    above = []
-    for pts in full:
-        h, r = _height_radius(pts, n, foot)
-        m = (h > 5.0) & (h < cfg.crop_height_mm) & (r < cfg.max_crop_radius_mm * 0.7)
-        above.append(pts[m] - h[m, None] * n)
-    above = np.concatenate(above) if above else np.zeros((0, 3))
-    centre = above.mean(axis=0) if len(above) > 50 else foot
+    # the first axis point from what moves: the objects' turn between the sampled frames (the
+    # static room and clutter beside the table do not move, so they do not pull it)
+    pairs, A.moving = _sampled_motion(session, cfg, arm, good_sample, n, d, sign)
+    pairs = [p for p in pairs if p["score"] >= 0.3]
+    if pairs:
+        centre = np.median(np.stack([p["centre"] for p in pairs]), axis=0)
+        A.axis_source = f"motion of the objects ({len(pairs)} frame pairs)"
+    else:   # nothing moves enough to tell (a round object on the axis): what stands on the table
+        above = []
+        for pts in full:
+            h, r = _height_radius(pts, n, foot)
+            m = (h > 5.0) & (h < cfg.crop_height_mm) & (r < cfg.max_crop_radius_mm * 0.7)
+            above.append(pts[m] - h[m, None] * n)
+        above = np.concatenate(above) if above else np.zeros((0, 3))
+        centre = above.mean(axis=0) if len(above) > 50 else foot
+        A.axis_source = "centroid above the table (too little motion to measure)"
     A.axis_dir, A.axis_point = n.copy(), centre - n * (n @ centre + d)
     # --- load every frame, loosely cropped (pass 1 crop) --------------------------------------
     task = prog.add_task(f"arm {arm}: load", total=len(available))
@@ -884,13 +1161,13 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
         if cfg.crop_radius_mm is not None:
             A.radius = float(cfg.crop_radius_mm)
         else:
-            rs = []
-            for pts in full:
-                h, r = _height_radius(pts, A.axis_dir, A.axis_point)
-                rs.append(r[(np.abs(h) < cfg.plane_dist_mm) & (r < cfg.max_crop_radius_mm)])
-            rs = np.concatenate(rs)
-            A.radius = float(min(cfg.max_crop_radius_mm, (np.percentile(rs, 99.5) if len(rs) else 0.0)
-                                 + cfg.crop_margin_mm)) if len(rs) > 100 else cfg.max_crop_radius_mm
+            disk = _disk_radius(full, A.axis_dir, A.axis_point, info.camera, cfg)
+            # whatever the disk's edge looks like, the crop holds what turns with it
+            _, r_mov = _height_radius(A.moving, A.axis_dir, A.axis_point)
+            r_mov = r_mov[r_mov < cfg.max_crop_radius_mm]
+            reach = float(np.percentile(r_mov, 98)) if len(r_mov) >= 50 else 0.0
+            A.radius = (cfg.max_crop_radius_mm if disk is None
+                        else float(min(cfg.max_crop_radius_mm, max(disk, reach) + cfg.crop_margin_mm)))
     # --- per-frame refinement against the arm's fused cloud, residuals, flags -----------------
     # (the pyramids of pass 2 are kept: the axis moved by a fraction of a mm since they were cropped)
     frames: list[FrameRegistration] = []
@@ -982,6 +1259,54 @@ def _cloud(points: np.ndarray, normals: np.ndarray) -> "o3d.geometry.PointCloud"
 # ---------------------------------------------------------------------------------------------
 # the session
 # ---------------------------------------------------------------------------------------------
+def _cross_check_axes(arms: list[ArmRegistration], pose: str, cfg: RegistrationConfig, how: str) -> None:
+    """Flag every arm position whose turntable axis, moved into the reference camera by its pose
+    ``pose`` ("T_ref_arm_prior": the robot's; "T_ref_arm": after the arm-to-arm ICP), stands
+    more than ``arm_axis_max_mm`` (at the table top) or ``arm_axis_max_deg`` from the others'
+    consensus (the median; with two arms, each other). Every arm sees the same turntable, so an
+    arm that disagrees has a wrong axis or a wrong relation to the others: none of its frames is
+    labelled."""
+    live = [a for a in arms if not a.flagged]
+    if len(live) < 2:
+        return
+    dirs = np.stack([getattr(a, pose)[:3, :3] @ a.axis_dir for a in live])
+    pts = np.stack([(getattr(a, pose) @ np.append(a.axis_point, 1.0))[:3] for a in live])
+    for i, a in enumerate(live):
+        if len(live) == 2:   # no majority: each against the other
+            pc, dc = pts[1 - i], dirs[1 - i]
+        else:
+            pc, dc = np.median(pts, axis=0), np.median(dirs, axis=0)
+            dc = dc / np.linalg.norm(dc)
+        rel = pts[i] - pc
+        off = float(np.linalg.norm(rel - (rel @ dc) * dc))
+        ang = math.degrees(math.acos(float(np.clip(abs(dirs[i] @ dc), -1.0, 1.0))))
+        if off > cfg.arm_axis_max_mm or ang > cfg.arm_axis_max_deg:
+            a.flagged = True
+            reason = (f"its turntable axis stands {off:.1f} mm / {ang:.2f} deg from the other arm positions' "
+                      f"{how} (limits {cfg.arm_axis_max_mm:g} mm / {cfg.arm_axis_max_deg:g} deg)")
+            a.reason = f"{a.reason}; {reason}" if a.reason else reason
+
+
+def _check_depth(session: RawSession, cfg: RegistrationConfig) -> None:
+    """Session-level refusals before any arm is registered, each one line naming the file: no
+    frames of the registered phase (or an arm position without any), frames of another size than
+    session.json's camera, depth that is not in millimetres through ``camera.depth_scale``."""
+    keys = session.require_frames(cfg.phase)
+    sample = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(5, len(keys))).round().astype(int))]
+    zs = []
+    for ph, a, k in sample:
+        try:
+            zs.append(session.load_depth_mm(ph, a, k))
+        except TdofError as e:
+            if "session.json's camera" in str(e):   # every frame has that size: say so, not "no depth"
+                raise
+    if zs:
+        problem = depth_units_problem(session.info, np.stack(zs))
+        if problem:
+            where = ", ".join(f"arm {a} step {k}" for _, a, k in sample)
+            raise TdofError(f"{problem} (sampled {cfg.phase} frames: {where})", session.path / "session.json")
+
+
 def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = None,
                      progress: bool = True, workers: int | None = 1) -> RegistrationResult:
     """Register every frame of a raw session to frame (arm 0, step 0) from the opaque depth.
@@ -1000,9 +1325,19 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     if cfg.phase not in info.phases:
         raise TdofError(f"the session has no {cfg.phase} phase (phases: {list(info.phases)}): "
                         f"registration needs the opaque twins' depth", session.path / "session.json")
-    direction = str((info.turntable or {}).get("direction", "ccw")).lower() if isinstance(info.turntable, dict) else "ccw"
+    _check_depth(session, cfg)
+    recorded = isinstance(info.turntable, dict) and "direction" in info.turntable
+    direction = str(info.turntable.get("direction", "ccw")).lower() if recorded else "ccw"
     sign = -1.0 if direction in ("cw", "clockwise") else 1.0
-    timing: dict[str, float] = {}
+    t_check = time.perf_counter()
+    checked = _check_turntable(session, cfg, sign, recorded)
+    turntable = {"direction": "ccw" if checked > 0 else "cw",
+                 "source": "session.json" if recorded else ("detected from the opaque depth" if checked != sign
+                                                            else "default (ccw), confirmed or not contradicted by "
+                                                                 "the opaque depth")}
+    sign = checked
+    timing_check = round(time.perf_counter() - t_check, 3)
+    timing: dict[str, float] = {"turntable_check": timing_check}
     arms: list[ArmRegistration] = []
     frames: list[FrameRegistration] = []
     fused: dict[int, Any] = {}
@@ -1031,6 +1366,8 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
             T_prior = invert(T_base_cam0) @ info.T_base_cam(a)
             arms.append(ArmRegistration(a, A.axis_dir, A.axis_point, A.plane_n, A.plane_d, A.radius,
                                         T_prior.copy() if a else np.eye(4), T_prior if a else np.eye(4)))
+        # --- the arms' axes must agree through the robot's poses --------------------------------
+        _cross_check_axes(arms, "T_ref_arm_prior", cfg, "through the robot's poses")
         # --- relate the arm positions ---------------------------------------------------------
         ta = time.perf_counter()
         ref = _Pyramid.from_cloud(fused[0], cfg) if len(fused[0].points) else None
@@ -1056,13 +1393,14 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
                                   f"{float(cd):.2f} deg / {cm:.1f} mm); robot prior kept")
             else:
                 arm_reg.T_ref_arm = T
+        _cross_check_axes(arms, "T_ref_arm", cfg, "after the arm-to-arm ICP")
         timing["arms"] = round(time.perf_counter() - ta, 3)
     for f in frames:
         f.T_ref_frame = arms[f.arm].T_ref_arm @ per_arm[f.arm][f.step]
     frames.sort(key=lambda f: (f.arm, f.step))
     timing["total"] = round(time.perf_counter() - t0, 3)
     return RegistrationResult(info.scene_id, info.steps, float(info.step_deg), info.n_arms, frames, arms,
-                              cfg.to_dict(), timing)
+                              cfg.to_dict(), timing, turntable)
 
 
 # ---------------------------------------------------------------------------------------------

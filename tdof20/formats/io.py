@@ -238,13 +238,14 @@ def _not_png(data: bytes, path: str | Path) -> TdofError:
     return TdofError("not a PNG file (bad signature)", path)
 
 
-def png_header(path: str | Path, kind: str = "any") -> tuple[int, int]:
+def png_header(path: str | Path, kind: str = "any", data: bytes | None = None) -> tuple[int, int]:
     """(height, width) of a PNG from its header alone (the first 33 bytes; nothing is decoded),
     checked against ``kind`` as :func:`decode_png` would: 'rgb' an 8-bit RGB(A) image, 'depth' a
     16-bit grey image, 'mask' a grey image of at most 8 bits. A file that is not a PNG (a JPEG
-    named .png), has no image header or holds another kind of image is a TdofError naming it."""
+    named .png), has no image header or holds another kind of image is a TdofError naming it.
+    ``data``: the file's bytes when they are read already (``path`` then only names it)."""
     path = Path(path)
-    data = read_bytes(path, "image file", limit=33)
+    data = read_bytes(path, "image file", limit=33) if data is None else data[:33]
     if not data.startswith(PNG_SIGNATURE):
         raise _not_png(data, path)
     if len(data) < 33 or data[12:16] != b"IHDR":

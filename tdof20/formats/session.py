@@ -676,10 +676,11 @@ def write_frame(dir: str | Path, info: SessionInfo, phase: str, arm: int, step: 
 _KIND_WORDS = {"rgb": "colour image", "depth": "depth image"}
 
 
-def frame_size_problem(image: np.ndarray, camera: PinholeCamera, kind: str = "image") -> str | None:
-    """None when a decoded frame ``image`` ((H,W) or (H,W,C)) has the size of session.json's
-    camera, else the problem in words (the caller names the file). ``kind``: 'rgb', 'depth'."""
-    h, w = np.shape(image)[:2]
+def frame_size_problem(image: np.ndarray | tuple[int, int], camera: PinholeCamera, kind: str = "image") -> str | None:
+    """None when a frame — a decoded ``image`` ((H,W) or (H,W,C)), or its (H, W) read from a PNG
+    header — has the size of session.json's camera, else the problem in words (the caller names
+    the file). ``kind``: 'rgb', 'depth'."""
+    h, w = (tuple(image) if isinstance(image, tuple) else np.shape(image))[:2]
     if (h, w) == (camera.height, camera.width):
         return None
     return (f"{_KIND_WORDS.get(kind, kind)} is {w}x{h} pixels but session.json's camera is "
