@@ -434,12 +434,17 @@ def train_hff6dof(dataset: Path = typer.Option(..., "--dataset", help="dataset r
                   shard: Optional[Path] = typer.Option(None, help="train on this HDF5 shard (tdof20 dataset pack)"),
                   save_every: float = typer.Option(600.0, help="checkpoint at an epoch end when the last is older (s)")) -> None:
     """Train HFF6DoF on the train part of a split; run again on the same --out to resume or extend."""
-    from tdof20.methods.train import train
+    from tdof20.methods.train import is_main_process, train
 
-    train(dataset, split, out, image_size=_image_size(image_size), batch_size=batch_size, epochs=epochs, lr=lr,
-          lr_schedule=lr_schedule, depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head, device=device,
-          amp=amp, num_workers=workers, max_steps=max_steps, seed=seed, backbone_weights=backbone_weights,
-          shard=shard, save_every_s=save_every)
+    try:
+        train(dataset, split, out, image_size=_image_size(image_size), batch_size=batch_size, epochs=epochs, lr=lr,
+              lr_schedule=lr_schedule, depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head,
+              device=device, amp=amp, num_workers=workers, max_steps=max_steps, seed=seed,
+              backbone_weights=backbone_weights, shard=shard, save_every_s=save_every)
+    except TdofError as e:
+        if getattr(e, "same_in_every_process", False) and not is_main_process():
+            sys.exit(2)  # under torchrun: process 0 prints the line
+        raise
 
 
 @app.command("predict")
@@ -467,11 +472,14 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
                     split: Optional[str] = typer.Option(None, "--split", help="simple or hard (its test targets)"),
                     targets: Optional[Path] = typer.Option(None, "--targets", help="a targets JSON instead of --split"),
                     json_out: Optional[Path] = typer.Option(None, "--json", help="write the scores as JSON here"),
-                    plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md")) -> None:
-    """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC; per object and mean."""
+                    plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md"),
+                    metrics: Optional[str] = typer.Option(None, "--metrics", help="comma-separated: add,proj,vsd,mssd,mspd,ar "
+                                                          "(default: add,proj,mssd,mspd, plus vsd,ar when the dataset has depth)")) -> None:
+    """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC, and BOP19's VSD, MSSD,
+    MSPD and AR; per object, per scene and mean."""
     from tdof20.benchmark.scoring import score_command
 
-    out_console.print(score_command(results, dataset, split, targets, json_out, plots), highlight=False)
+    out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics), highlight=False)
 
 
 @benchmark_app.command("profile")

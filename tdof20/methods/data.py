@@ -53,6 +53,29 @@ def check_depth_mode(mode: str) -> str:
     return mode
 
 
+#: what each part of a split takes (tdof20.benchmark.splits), for the message when it is empty
+SPLIT_PART_SCENES = {
+    ("simple", "train"): "the single-object scenes' frames outside the test arcs",
+    ("simple", "test"): "one arc of turntable steps per arm position of the single-object scenes",
+    ("hard", "train"): "the single-object scenes and multi-object scenes 01, 03-07, 12-14, 16-20",
+    ("hard", "test"): "multi-object scenes 02, 08, 09, 10, 11 and 15",
+}
+
+
+def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: str) -> list[tuple[int, int]]:
+    """(scene_id, im_id) of ``split``/``part`` of the dataset; a one-line TdofError naming the split,
+    the part and the dataset root when the part is empty (``purpose``: 'train on', 'predict')."""
+    from tdof20.benchmark.dataset import split_images
+
+    images = split_images(dataset_root, split, part)
+    if not images:
+        takes = SPLIT_PART_SCENES.get((split, part), "")
+        raise TdofError(f"the {split} split's {part} part of this dataset is empty (splits/{split}_{part}.json "
+                        f"lists no images{'; it takes ' + takes if takes else ''}): nothing to {purpose}",
+                        dataset_root)
+    return images
+
+
 # --------------------------------------------------------------------------------------------
 # keypoints
 

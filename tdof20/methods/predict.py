@@ -30,6 +30,7 @@ preparing the images is not counted), shared evenly among the images of a batch.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -39,7 +40,7 @@ import torch
 from tdof20.errors import TdofError
 from tdof20.formats import write_json
 from tdof20.methods.data import HFFTransform, SceneImages, TransformedDataset, backproject, collate, keypoint_table, \
-    keypoints_from_json, worker_init
+    keypoints_from_json, split_part_images, worker_init
 from tdof20.methods.fitting import kabsch_torch
 from tdof20.methods.train import amp_dtype, load_run, select_device
 from tdof20.methods.voting import vote_keypoints_batched
@@ -48,6 +49,28 @@ from tdof20.progress import console, progress as progress_bar
 MASK_SOURCES = ("auto", "network", "gt")
 VOTING = ("3d", "bearing")
 DEFAULT_VOTING = "bearing"  # the result of the depth comparison in docs/hff6dof.md
+
+
+def check_output_file(path: str | Path, option: str = "--out", if_folder: str | None = None) -> Path:
+    """Refuse, before any work, an output file that cannot be written: a folder (``if_folder``: what
+    to do then), a path below a file, or a folder without write permission."""
+    path = Path(path)
+    if path.is_dir():
+        raise TdofError(f"{option} is a folder, not a file: "
+                        f"{if_folder or 'give a file name, such as ' + str(path / 'results.csv')}", path)
+    p = path.parent
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        raise TdofError(f"{option} cannot be written: {p} is a file, not a folder", path)
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise TdofError(f"{option} cannot be written: no permission to write in {p}", path)
+    return path
+
+
+def info_path(out_csv: Path) -> Path:
+    """Where predict writes its summary beside the results CSV."""
+    return out_csv.with_name(out_csv.stem + "_info.json")
 
 
 def default_min_pixels(image_size) -> int:
@@ -262,14 +285,16 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     """
     from tdof20.benchmark.results import write_results_csv
 
-    out_csv = Path(out_csv)
+    out_csv = check_output_file(out_csv)
+    check_output_file(info_path(out_csv), "the summary beside --out",
+                      "predict writes it there: move the folder away or choose another --out")
     rows, info = predict_rows(run_dir, dataset_root, split, device=device, batch_size=batch_size,
                               num_workers=num_workers, masks=masks, min_pixels=min_pixels, max_points=max_points,
                               n_hyp=n_hyp, inlier_cos=inlier_cos, voting=voting, amp=amp, seed=seed,
                               progress=progress)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_csv, rows)
-    write_json(out_csv.with_name(out_csv.stem + "_info.json"), info)
+    write_json(info_path(out_csv), info)
     if progress:
         console.print(f"{info['predictions']} poses in {info['images']} images ({split}/test, masks: "
                       f"{info['masks']}, depth: {info['depth_mode']}); network {info['network_ms_per_image']:.1f} ms"
@@ -285,8 +310,6 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                  ) -> tuple[list[tuple], dict]:
     """What :func:`predict` writes, without writing: (rows (scene_id, im_id, obj_id, score, R (3,3),
     t (3,) mm, time s), summary dict). ``images`` overrides the split's test images."""
-    from tdof20.benchmark.dataset import split_images
-
     dataset_root = Path(dataset_root)
     if masks not in MASK_SOURCES:
         raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
@@ -294,6 +317,10 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         raise TdofError(f"--voting must be one of {', '.join(VOTING)}, got '{voting}'")
     if not (dataset_root / "dataset_info.json").exists():
         raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
+    if images is None:
+        images = split_part_images(dataset_root, split, "test", "predict")
+    if not images:
+        raise TdofError("no images to predict")
     dev = select_device(device)
     net, config = load_run(run_dir, dev)
     if masks == "auto":
@@ -309,10 +336,6 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
     if min_pixels is None:
         min_pixels = default_min_pixels(image_size)
-    if images is None:
-        images = split_images(dataset_root, split, "test")
-    if not images:
-        raise TdofError(f"the {split} split has no test images", dataset_root / "splits")
     data = TransformedDataset(SceneImages(dataset_root, images, labels=masks == "gt"),
                               HFFTransform(kp_table, image_size, depth_mode, targets=False))
     loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
@@ -380,14 +403,12 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
     ``split``/``part``, at the run's image size: {"mean": mean over the object classes present,
     "per_class": {obj_id: IoU}, "pixel_accuracy": fraction of object pixels labelled right}. Pixels and
     unions are pooled over the images."""
-    from tdof20.benchmark.dataset import split_images
-
+    if images is None:
+        images = split_part_images(dataset_root, split, part, "measure")
     dev = select_device(device)
     net, config = load_run(run_dir, dev)
     if not net.has_seg_head:
         raise TdofError("the run has no segmentation head", run_dir)
-    if images is None:
-        images = split_images(dataset_root, split, part)
     kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
     data = TransformedDataset(SceneImages(dataset_root, images, labels=True),
                               HFFTransform(kp_table, config["image_size"], config["depth_mode"], targets=False))

@@ -8,7 +8,8 @@ A run folder holds everything needed to resume and to predict:
     RUN/config.json       network config, keypoints {obj_id: (9,3) mm}, image size, depth mode, and
                           the training options (what predict rebuilds the network from)
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
-    RUN/history.json      per-epoch losses, learning rate, images/s
+    RUN/history.json      per-epoch losses, learning rate, images/s (several processes: each one's
+                          weights digest at the end, which must agree)
     RUN/loss.png          loss curves (total, segmentation, vector field) and learning rate
     RUN/data/{split}_train.h5   the packed training shard (made on first use, reused afterwards)
 
@@ -16,18 +17,26 @@ Running ``train`` again on the same RUN resumes from last.pt: the epoch and step
 optimiser's moments and the loss history continue; asking for more ``epochs`` (or a larger
 ``max_steps``) extends the run. The network options must not change between calls.
 
-Several GPUs: ``torchrun --nproc_per_node N -m tdof20 train hff6dof ...`` (or any launcher that
-sets LOCAL_RANK / WORLD_SIZE): one process per GPU, DistributedDataParallel, a DistributedSampler,
-``batch_size`` per process; only rank 0 packs, prints and writes.
+Everything a call refuses (a damaged or foreign last.pt, an --out that is a file, an empty split
+part, changed options) is refused before anything is packed or written, and the files found are
+left as they are.
+
+Several processes: ``torchrun --nproc_per_node N -m tdof20 train hff6dof ...`` (or any launcher
+that sets RANK / LOCAL_RANK / WORLD_SIZE): one process per GPU (NCCL), or per CPU process with
+``--device cpu`` (gloo); DistributedDataParallel, a DistributedSampler, ``batch_size`` per
+process; only rank 0 packs, prints and writes; at the end the processes compare a digest of
+their weights (history.json's ``processes``).
 """
 
 from __future__ import annotations
 
-import json
+import hashlib
 import math
 import os
 import time
+import zipfile
 from contextlib import nullcontext
+from datetime import timedelta
 from pathlib import Path
 
 import torch
@@ -36,7 +45,7 @@ from tdof20.errors import TdofError
 from tdof20.formats import read_json, write_json
 from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, N_KEYPOINTS, HFFTransform, TransformedDataset,
                                  check_depth_mode, collate, keypoints_from_json, keypoints_to_json,
-                                 model_keypoints, worker_init)
+                                 model_keypoints, split_part_images, worker_init)
 from tdof20.methods.hff6dof import HFF6DoF
 from tdof20.methods.losses import hff_loss
 from tdof20.progress import console, progress as progress_bar
@@ -76,6 +85,11 @@ def _distributed() -> tuple[int, int, int]:
     return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
 
 
+def is_main_process() -> bool:
+    """True in a single process and in process 0 of a launch (torchrun): the one that writes and prints."""
+    return _distributed()[0] == 0
+
+
 def amp_dtype(dev: torch.device) -> torch.dtype:
     return torch.bfloat16 if dev.type == "cuda" and torch.cuda.is_bf16_supported() else torch.float16
 
@@ -97,26 +111,181 @@ def lr_factor(step: int, total: int, schedule: str, warmup: int) -> float:
 # run folder
 
 
-def build_network(config: dict) -> HFF6DoF:
-    """The network described by a run's config.json."""
+NETWORK_KEYS = ("n_classes", "n_keypoints", "fuse_stages", "seg_head", "decoder_channels", "head_channels",
+                "geo_channels")
+RUN_KEYS = ("network", "image_size", "depth_mode", "split", "keypoints")
+
+
+def build_network(config: dict, path: Path | None = None) -> HFF6DoF:
+    """The network described by a run's config.json (``path``: that file, for the error message)."""
     net = config["network"]
-    return HFF6DoF(n_classes=net["n_classes"], n_keypoints=net["n_keypoints"], fuse_stages=net["fuse_stages"],
-                   seg_head=net["seg_head"], decoder_channels=net["decoder_channels"],
-                   head_channels=net["head_channels"], geo_channels=net["geo_channels"])
+    try:
+        return HFF6DoF(n_classes=net["n_classes"], n_keypoints=net["n_keypoints"], fuse_stages=net["fuse_stages"],
+                       seg_head=net["seg_head"], decoder_channels=net["decoder_channels"],
+                       head_channels=net["head_channels"], geo_channels=net["geo_channels"])
+    except (ValueError, TypeError, RuntimeError) as e:
+        raise TdofError(f"its network options do not make a network ({e})", path) from None
+
+
+def read_run_config(run_dir: str | Path, advice: str = "") -> dict:
+    """A run's config.json, checked to be an HFF6DoF run's with every key predict and resume need."""
+    path = Path(run_dir) / CONFIG
+    if not path.exists():
+        raise TdofError(f"missing: the run folder holds {CHECKPOINT} without the {CONFIG} it belongs to{advice}", path)
+    config = read_json(path)
+    if not isinstance(config, dict) or config.get("method") != "hff6dof":
+        raise TdofError(f"not an HFF6DoF run's {CONFIG}{advice}", path)
+    missing = [k for k in RUN_KEYS if k not in config]
+    if isinstance(config.get("network"), dict):
+        missing += [f"network.{k}" for k in NETWORK_KEYS if k not in config["network"]]
+    elif "network" in config:
+        missing.append("network (not a table)")
+    if missing:
+        raise TdofError(f"lacks {', '.join(missing)}{advice}", path)
+    return config
+
+
+def _size_text(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 100_000 else f"{n} bytes"
+
+
+def _load_failure(e: BaseException) -> str:
+    """What torch.load's exception says about a file, in a few words."""
+    text = (str(e).strip().splitlines() or [""])[0]
+    if isinstance(e, EOFError):
+        return "the file ends early: it is cut short"
+    if "zip archive" in text or "central directory" in text:
+        return "its zip archive is damaged"
+    if text.startswith("Weights only load failed"):
+        return "it holds objects other than tensors and plain data"
+    text = text.split(". ")[0]
+    return f"damaged or not a torch checkpoint ({type(e).__name__}: {text[:80]})"
+
+
+def read_checkpoint(path: str | Path, needs: tuple[str, ...] = ("model",), advice: str = "",
+                    mmap: bool = False) -> dict:
+    """The dict a run's last.pt holds, loaded on the CPU without running any code from the file
+    (``weights_only``); a one-line TdofError naming the file when it is truncated, random bytes, or
+    lacks one of ``needs``. The file itself is left as it is. ``mmap``: map the file instead of
+    reading it (only the tensors used are read: predict reads the weights, not AdamW's moments)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as e:
+        raise TdofError(f"cannot be read ({e.strerror}){advice}", path) from None
+    if path.is_dir():
+        raise TdofError(f"is a folder, not a checkpoint{advice}", path)
+    if size == 0:
+        raise TdofError(f"cannot be read as a checkpoint (the file is empty){advice}", path)
+    if not zipfile.is_zipfile(path):
+        with open(path, "rb") as f:
+            truncated = f.read(4) == b"PK\x03\x04"
+        why = ("truncated: it begins like a torch checkpoint but its end is missing" if truncated else
+               "not a torch checkpoint: not the zip archive torch.save writes")
+        raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {why}){advice}", path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+    except Exception as e:  # a damaged file can make the unpickler fail in any way
+        raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {_load_failure(e)}){advice}",
+                        path) from None
+    if not isinstance(ckpt, dict):
+        raise TdofError(f"is not an HFF6DoF checkpoint (it holds a {type(ckpt).__name__}, not a dict with "
+                        f"the network's weights){advice}", path)
+    missing = [k for k in needs if k not in ckpt]
+    if missing:
+        raise TdofError(f"is not an HFF6DoF checkpoint (no {', '.join(missing)} in it){advice}", path)
+    model = ckpt["model"]
+    if not isinstance(model, dict) or not all(isinstance(v, torch.Tensor) for v in model.values()):
+        raise TdofError(f"is not an HFF6DoF checkpoint ('model' is not a dict of tensors){advice}", path)
+    return ckpt
+
+
+def _weights(keys: list[str]) -> str:
+    return f"{len(keys)} weight{'s' if len(keys) != 1 else ''}"
+
+
+def _examples(keys: list[str]) -> str:
+    return ", ".join(keys[:2]) + (", ..." if len(keys) > 2 else "")
+
+
+def check_weights(net: HFF6DoF, ckpt: dict, config: dict, path: Path, advice: str = "") -> None:
+    """A one-line TdofError naming the checkpoint ``path`` when its weights do not fit ``net`` (the
+    network ``config``, the run's config.json, describes; it may live on the meta device) or the
+    checkpoint was written by a run of other options."""
+    why = []
+    saved = ckpt.get("config")
+    if isinstance(saved, dict):
+        old, now = saved.get("network") or {}, config.get("network") or {}
+        why += [f"{k} {old.get(k)} here, {now.get(k)} in {CONFIG}" for k in NETWORK_KEYS
+                if k in old and old.get(k) != now.get(k)]
+        why += [f"{k} {saved.get(k)} here, {config.get(k)} in {CONFIG}" for k in ("image_size", "depth_mode")
+                if k in saved and saved.get(k) != config.get(k)]
+        if "keypoints" in saved and saved["keypoints"] != config.get("keypoints"):
+            why.append(f"other keypoints than {CONFIG}'s")
+    own, state = net.state_dict(), ckpt["model"]
+    missing = [k for k in own if k not in state]
+    extra = [k for k in state if k not in own]
+    shape = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing:
+        why.append(f"{_weights(missing)} missing ({_examples(missing)})")
+    if extra:
+        why.append(f"{_weights(extra)} the network does not have ({_examples(extra)})")
+    if shape:
+        k = shape[0]
+        why.append(f"{_weights(shape)} of another shape ({k} {list(state[k].shape)}, the network's "
+                   f"{list(own[k].shape)})")
+    if why:
+        raise TdofError(f"holds another network than the run's {CONFIG} describes: {'; '.join(why)}{advice}", path)
 
 
 def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[HFF6DoF, dict]:
     """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise TdofError("is a file, not a run folder (tdof20 train hff6dof --out makes one)", run_dir)
     if not (run_dir / CONFIG).exists() or not (run_dir / CHECKPOINT).exists():
         raise TdofError(f"not an HFF6DoF run (needs {CONFIG} and {CHECKPOINT}; train one first)", run_dir)
-    config = read_json(run_dir / CONFIG)
-    if config.get("method") != "hff6dof":
-        raise TdofError("config.json is not an HFF6DoF run's", run_dir / CONFIG)
-    net = build_network(config)
-    ckpt = torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)
+    advice = ": restore it from a copy, or train a new run into another --out"
+    config = read_run_config(run_dir)
+    ckpt = read_checkpoint(run_dir / CHECKPOINT, advice=advice, mmap=True)
+    net = build_network(config, run_dir / CONFIG)
+    check_weights(net, ckpt, config, run_dir / CHECKPOINT, advice)
     net.load_state_dict(ckpt["model"])
     return net.to(device).eval(), config
+
+
+def check_run_folder(out_run: Path, dataset_root: Path) -> None:
+    """Refuse, before any work, a --out that cannot be (or must not be made) a run folder."""
+    if out_run.exists() and not out_run.is_dir():
+        raise TdofError("--out is a file, not a run folder: give a folder (created) or an existing run to resume",
+                        out_run)
+    p = out_run
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        raise TdofError(f"--out cannot be made: {p} is a file, not a folder", out_run)
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise TdofError(f"--out cannot be written: no permission to write in {p}", out_run)
+    if (out_run / "dataset_info.json").exists() or out_run.resolve() == dataset_root.resolve():
+        raise TdofError("--out is a dataset root (it is only read): give a run folder of its own", out_run)
+    cfg = out_run / CONFIG
+    if cfg.exists() and not (out_run / CHECKPOINT).exists():
+        try:
+            foreign = read_json(cfg).get("method") != "hff6dof"
+        except (TdofError, AttributeError):
+            foreign = True
+        if foreign:
+            raise TdofError(f"--out holds a {CONFIG} that is not an HFF6DoF run's (training would overwrite it): "
+                            "give another --out", out_run)
+
+
+def parameters_digest(net: torch.nn.Module) -> str:
+    """SHA-256 of the network's parameters (bytes, in order): equal digests = identical weights."""
+    h = hashlib.sha256()
+    for name, p in net.named_parameters():
+        h.update(name.encode())
+        h.update(p.detach().float().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
 
 def _save_atomic(obj, path: Path) -> None:
@@ -163,7 +332,9 @@ def plot_losses(history: list[dict], path: Path) -> Path:
 
 
 def _check_same(saved: dict, new: dict, path: Path) -> None:
-    pairs = [(key, saved.get(key), new.get(key)) for key in ("network", "image_size", "depth_mode", "split")]
+    old_net, new_net = saved.get("network") or {}, new.get("network") or {}
+    pairs = [(f"network {k}", old_net.get(k), new_net.get(k)) for k in sorted(set(old_net) | set(new_net))]
+    pairs += [(key, saved.get(key), new.get(key)) for key in ("image_size", "depth_mode", "split")]
     pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
     for key, old, now in pairs:
         if old != now:
@@ -216,46 +387,85 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
     """
     from tdof20.formats.shards import ShardDataset
 
-    dataset_root = Path(dataset_root)
-    out_run = Path(out_run)
-    if not (dataset_root / "dataset_info.json").exists():
-        raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
-    from tdof20.benchmark.splits import SPLITS
-    if split not in SPLITS:
-        raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
-    check_depth_mode(depth_mode)
-    if lr_schedule not in LR_SCHEDULES:
-        raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
-    if batch_size < 1 or epochs < 1 or lr <= 0:
-        raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
-    if not 1 <= int(fuse_stages) <= 5:
-        raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
-
     rank, local_rank, world = _distributed()
-    dist = None
-    if world > 1:
-        import torch.distributed as dist
-        if torch.cuda.is_available():
-            torch.cuda.set_device(local_rank)
-            dev = torch.device("cuda", local_rank)
-        else:
-            dev = torch.device("cpu")
-        if not dist.is_initialized():
-            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
-    else:
-        dev = select_device(device)
-    main = rank == 0
-    show = bool(progress) and main
-    use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
-    if amp and dev.type != "cuda" and show:
-        console.print("[yellow]mixed precision is for CUDA devices; training in float32")
+    try:  # the checks before any work
+        dataset_root = Path(dataset_root)
+        out_run = Path(out_run)
+        if not (dataset_root / "dataset_info.json").exists():
+            raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
+        from tdof20.benchmark.splits import SPLITS
+        if split not in SPLITS:
+            raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
+        check_depth_mode(depth_mode)
+        if lr_schedule not in LR_SCHEDULES:
+            raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
+        if batch_size < 1 or epochs < 1 or lr <= 0:
+            raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
+        if not 1 <= int(fuse_stages) <= 5:
+            raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
 
+        check_run_folder(out_run, dataset_root)
+        if shard is None:
+            split_part_images(dataset_root, split, "train", "train on")
+
+        dev = select_device(device)
+        if world > 1:
+            if dev.type == "cuda":
+                dev = torch.device("cuda", local_rank)
+                torch.cuda.set_device(dev)
+            elif dev.type != "cpu":
+                raise TdofError(f"--device {device}: training in {world} processes runs on CUDA (NCCL) or the CPU "
+                                "(gloo), not on this device")
+        main = rank == 0
+        show = bool(progress) and main
+        use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
+
+        # the run to resume, read and checked before anything is written or packed
+        ckpt_path = out_run / CHECKPOINT
+        resume = ckpt_path.exists()
+        ckpt = saved = None
+        if resume:
+            advice = (f": move {CHECKPOINT} out of the run folder to start the run afresh, or train into another "
+                      "--out")
+            saved = read_run_config(out_run, advice)
+            ckpt = read_checkpoint(ckpt_path, needs=("model", "optimizer", "epoch", "step", "history"), advice=advice)
+            with torch.device("meta"):  # shapes only: nothing is allocated
+                check_weights(build_network(saved, out_run / CONFIG), ckpt, saved, ckpt_path, advice)
+                asked = HFF6DoF(n_classes=N_CLASSES, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages,
+                                seg_head=seg_head).config
+            # the options that must not change, before the work (a native image size is known later)
+            _check_same(saved, {"network": {k: list(v) if isinstance(v, tuple) else v for k, v in asked.items()},
+                                "image_size": saved.get("image_size") if image_size is None else
+                                [int(image_size[0]), int(image_size[1])],
+                                "depth_mode": depth_mode, "split": split, "train": {"batch_size": batch_size}},
+                        out_run / CONFIG)
+            try:
+                ckpt_epoch, ckpt_step = int(ckpt["epoch"]), int(ckpt["step"])
+                ckpt_history = list(ckpt["history"])
+            except (TypeError, ValueError):
+                raise TdofError(f"its epoch, step or history is not what train writes{advice}", ckpt_path) from None
+    except TdofError as e:
+        # each process of a launch meets the same refusal here, before the processes meet: the
+        # command line lets process 0 alone print it
+        e.same_in_every_process = world > 1
+        raise
+
+    dist = wait_group = None
     try:
+        if world > 1:
+            import torch.distributed as dist
+            if not dist.is_initialized():
+                dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+            # packing the shard can take long: the other processes wait for it on a group without
+            # the default collective timeout
+            wait_group = dist.new_group(backend="gloo", timeout=timedelta(days=7))
+        if amp and dev.type != "cuda" and show:
+            console.print("[yellow]mixed precision is for CUDA devices; training in float32")
         if main:
             out_run.mkdir(parents=True, exist_ok=True)
         shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show)
         if dist is not None:
-            dist.barrier()
+            dist.barrier(group=wait_group)
         data = ShardDataset(shard_path)
         if image_size is None:
             import h5py
@@ -264,11 +474,11 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
         image_size = (int(image_size[0]), int(image_size[1]))
         if min(image_size) < 32:
             raise TdofError(f"--image-size {image_size[0]}x{image_size[1]} is too small (32 pixels at least)")
+        if len(data) < world:
+            raise TdofError(f"{len(data)} training image{'s' if len(data) != 1 else ''} cannot be shared among "
+                            f"{world} processes: use fewer processes", shard_path)
 
-        ckpt_path = out_run / CHECKPOINT
-        resume = ckpt_path.exists()
         if resume:
-            saved = read_json(out_run / CONFIG)
             keypoints = keypoints_from_json(saved["keypoints"])
         else:
             keypoints = model_keypoints(dataset_root / "models")
@@ -285,11 +495,9 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                   "keypoints": keypoints_to_json(keypoints), "train": options}
         if resume:
             _check_same(saved, config, out_run / CONFIG)
+            net.load_state_dict(ckpt["model"])
         elif backbone_weights is not None:
             net.load_backbone_weights(backbone_weights)
-        if main:
-            write_json(out_run / CONFIG, config)
-
         net = net.to(dev)
         if dev.type == "cuda":
             net = net.to(memory_format=torch.channels_last)
@@ -298,15 +506,20 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
         scaler = torch.amp.GradScaler("cuda", enabled=use_amp and amp_dtype(dev) == torch.float16)
         epoch, step, history, epochs_log = 0, 0, [], []
         if resume:
-            ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-            net.load_state_dict(ckpt["model"])
-            opt.load_state_dict(ckpt["optimizer"])
-            if ckpt.get("scaler"):
-                scaler.load_state_dict(ckpt["scaler"])
-            epoch, step = int(ckpt["epoch"]), int(ckpt["step"])
-            history, epochs_log = list(ckpt["history"]), list(ckpt.get("epochs", []))
+            try:  # moves AdamW's moments to the parameters' device
+                opt.load_state_dict(ckpt["optimizer"])
+                if ckpt.get("scaler") and scaler.is_enabled():
+                    scaler.load_state_dict(ckpt["scaler"])
+            except (ValueError, KeyError, TypeError, RuntimeError) as e:
+                raise TdofError(f"its optimiser state does not fit the network ({type(e).__name__}: "
+                                f"{(str(e).splitlines() or [''])[0][:80]}){advice}", ckpt_path) from None
+            epoch, step, history = ckpt_epoch, ckpt_step, ckpt_history
+            epochs_log = list(ckpt.get("epochs") or [])
             for g in opt.param_groups:  # the options of this call win (lr, weight decay)
                 g["weight_decay"] = weight_decay
+            ckpt = None  # the weights now live in the network and the optimiser
+        if main:  # written once the run's state is known to load
+            write_json(out_run / CONFIG, config)
         model = net
         if world > 1:
             if dev.type == "cuda":
@@ -334,7 +547,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
 
         last_save = [time.perf_counter()]
 
-        def save() -> None:
+        def save(processes: dict | None = None) -> None:
             last_save[0] = time.perf_counter()
             if not main:
                 return
@@ -342,11 +555,13 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                           "scaler": scaler.state_dict() if scaler.is_enabled() else None,
                           "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
                           "config": config}, ckpt_path)
-            write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step})
+            write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step,
+                                                   **({"processes": processes} if processes else {})})
             if history:
                 plot_losses(history, out_run / "loss.png")
 
         global_bs = bs * world
+        start_step = step
         with progress_bar(show, unit="img") as bar:
             task = bar.add_task("training", total=total * global_bs, completed=min(step, total) * global_bs)
             while step < total:
@@ -403,18 +618,30 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                                            "images_per_s": round(n_img / dt, 2) if dt > 0 else None})
                     if step >= (epoch + 1) * steps_per_epoch:
                         epoch += 1
-                if step >= total or time.perf_counter() - last_save[0] >= save_every_s:
+                if step < total and time.perf_counter() - last_save[0] >= save_every_s:
                     save()
                 if show and epochs_log:
                     e = epochs_log[-1]
                     console.print(f"epoch {e['epoch']}: loss {e['loss']:.4f} (seg {e['seg']:.4f}, vec {e['vec']:.4f}), "
                                   f"{e['images_per_s']} images/s")
-        if not ckpt_path.exists():  # max_steps=0: the untrained network (a baseline)
-            save()
+        processes = None
+        if dist is not None:
+            processes = {"world_size": world, "backend": dist.get_backend(),
+                         "weights_sha256": [None] * world}
+            dist.all_gather_object(processes["weights_sha256"], parameters_digest(net))
+            processes["in_sync"] = len(set(processes["weights_sha256"])) == 1
+            if not processes["in_sync"] and show:
+                console.print("[bold red]the processes ended with different weights: the checkpoint holds "
+                              "process 0's")
+        if step > start_step or not ckpt_path.exists():  # max_steps=0: the untrained network (a baseline)
+            save(processes)
+        if dist is not None:
+            dist.barrier(group=wait_group)  # the others end when process 0 has written the checkpoint
         if show:
             console.print(f"run: {out_run} (last.pt, config.json, loss.png)")
     finally:
+        # no barrier on the way out of an error: the other processes may be inside a collective;
+        # the launcher (torchrun) ends them when this one exits non-zero
         if dist is not None and dist.is_initialized():
-            dist.barrier()
             dist.destroy_process_group()
     return out_run
