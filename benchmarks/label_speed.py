@@ -42,7 +42,7 @@ SCENE_FRAMES = 3200
 
 
 def _inputs(session: Path):
-    from tdof20.annotate.registration import truth_T_ref_frame
+    from tdof20.annotate.evaluate import truth_T_ref_frame
     from tdof20.formats import read_scene
     from tdof20.objects import get_object
 

@@ -119,7 +119,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     after the dataset. ``image_size`` (H, W), ``epochs``, ``batch_size``, ``lr``: the short HFF6DoF
     training (CPU-sized by default)."""
     from tdof20.annotate.evaluate import TARGETS
-    from tdof20.annotate.pipeline import AnnotateConfig, annotate, summary_text
+    from tdof20.annotate.config import AnnotateConfig
+    from tdof20.annotate.pipeline import annotate, summary_text
     from tdof20.benchmark.dataset import build_dataset, stats
     from tdof20.capture import run_capture, sim_config
     from tdof20.objects.catalog import export_models

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tdof20.annotate.config import AnnotateConfig
 from tdof20.annotate.label import LabelConfig
-from tdof20.annotate.pipeline import AnnotateConfig, annotate
+from tdof20.annotate.pipeline import annotate
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import read_json

@@ -19,8 +19,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from tdof20.annotate.config import AnnotateConfig, load_annotate_config
 from tdof20.annotate.label import LabelConfig
-from tdof20.annotate.pipeline import STAGES, AnnotateConfig, annotate, load_annotate_config, parse_stages
+from tdof20.annotate.pipeline import annotate
+from tdof20.annotate.stages import STAGES, parse_stages
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, read_scene, write_frame

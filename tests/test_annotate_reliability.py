@@ -14,9 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
+from tdof20.annotate.config import AnnotateConfig, load_annotate_config
+from tdof20.annotate.evaluate import truth_T_ref_frame
 from tdof20.annotate.label import LabelConfig, label_scene
-from tdof20.annotate.pipeline import AnnotateConfig, _Lock, annotate, load_annotate_config
-from tdof20.annotate.registration import truth_T_ref_frame
+from tdof20.annotate.pipeline import annotate
+from tdof20.annotate.state import FolderLock as _Lock
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, read_scene

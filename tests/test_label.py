@@ -21,7 +21,7 @@ import pytest
 from tdof20.annotate.executors import run_chunks
 from tdof20.annotate.label import LabelConfig, _LabelJob, label_scene
 from tdof20.annotate.labels import mask_iou
-from tdof20.annotate.registration import truth_T_ref_frame
+from tdof20.annotate.evaluate import truth_T_ref_frame
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, dumps_bop_json, read_json, read_scene

@@ -10,7 +10,9 @@ import pytest
 
 from tdof20.annotate import (RegistrationConfig, RegistrationResult, evaluate_against_truth,
                              register_session)
-from tdof20.annotate.registration import _edge_pairs, _fit_axis, truth_T_ref_frame
+from tdof20.annotate.evaluate import truth_T_ref_frame
+from tdof20.annotate.icp import edge_pairs as _edge_pairs
+from tdof20.annotate.turntable import fit_axis as _fit_axis
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_png, write_png

@@ -3,13 +3,17 @@
     from tdof20.annotate import annotate, AnnotateConfig
     summary = annotate("sessions/m08", "scenes/m08", models_dir="models/")
 
-The stages' modules: :mod:`~tdof20.annotate.registration` (register), :mod:`~tdof20.annotate.reconstruct`
-(reconstruct), :mod:`~tdof20.annotate.models` and :mod:`~tdof20.annotate.modelbuild` (model, place),
+The stages' rooms: :mod:`~tdof20.annotate.registration` with :mod:`~tdof20.annotate.turntable` and
+:mod:`~tdof20.annotate.icp` (register), :mod:`~tdof20.annotate.reconstruct` with
+:mod:`~tdof20.annotate.fusion` (reconstruct), :mod:`~tdof20.annotate.place`,
+:mod:`~tdof20.annotate.models` and :mod:`~tdof20.annotate.modelbuild` (model, place),
 :mod:`~tdof20.annotate.label` (label), :mod:`~tdof20.annotate.qa` and :mod:`~tdof20.annotate.evaluate`
-(qa); :mod:`~tdof20.annotate.pipeline` runs them in order, resumably. Names other than the
-registration's are imported on first use, so ``import tdof20.annotate`` stays light.
+(qa). :mod:`~tdof20.annotate.stages` describes each stage once (a record: name, needs, run,
+inputs, outputs); :mod:`~tdof20.annotate.pipeline` walks them in order, resumably, with the
+scene folder's state and lock (:mod:`~tdof20.annotate.state`) and the options
+(:mod:`~tdof20.annotate.config`). Names other than the registration's are imported on first use,
+so ``import tdof20.annotate`` stays light.
 """
-
 from __future__ import annotations
 
 import importlib
@@ -20,16 +24,15 @@ from tdof20.annotate.registration import (
     FrameRegistration,
     RegistrationConfig,
     RegistrationResult,
-    evaluate_against_truth,
     register_session,
-    truth_T_ref_frame,
 )
 
 _LAZY = {
-    # the pipeline
-    "STAGES": "pipeline", "AnnotateConfig": "pipeline", "PlaceConfig": "pipeline", "QAConfig": "pipeline",
-    "annotate": "pipeline", "load_annotate_config": "pipeline", "annotate_config_from_dict": "pipeline",
-    "parse_stages": "pipeline", "summary_text": "pipeline",
+    # the pipeline: options, stages, orchestrator
+    "AnnotateConfig": "config", "PlaceConfig": "config", "QAConfig": "config",
+    "load_annotate_config": "config", "annotate_config_from_dict": "config",
+    "STAGES": "stages", "parse_stages": "stages",
+    "annotate": "pipeline", "summary_text": "pipeline",
     # the stages
     "ReconstructionConfig": "reconstruct", "Reconstruction": "reconstruct",
     "ModelFitConfig": "models", "ModelFit": "models", "fit_model": "models",
@@ -38,10 +41,11 @@ _LAZY = {
     "LabelConfig": "label", "label_scene": "label",
     "write_qa": "qa",
     "evaluate_scene": "evaluate", "evaluate_command": "evaluate",
+    "evaluate_against_truth": "evaluate", "truth_T_ref_frame": "evaluate",
 }
 
 __all__ = ["ArmRegistration", "FrameRegistration", "RegistrationConfig", "RegistrationResult",
-           "evaluate_against_truth", "register_session", "truth_T_ref_frame", *_LAZY]
+           "register_session", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

@@ -33,6 +33,12 @@ nothing compares poses directly. What is measured:
 Each measure: median, p95 (and mean, p5, min, max, n) per object and over all objects ("all");
 plus the truth frames missing from the labels, label frames the truth lacks, and the (image,
 object) pairs with a visible IoU below ``iou_warn`` (0.9).
+
+The registration alone against the truth (the register stage's result, before any label):
+:func:`truth_T_ref_frame` (every frame's true ``T_ref_frame`` from ``truth/scene_camera.json``) and
+:func:`evaluate_against_truth` (errors of the frame-to-reference poses and of the motions between
+consecutive and between all pairs of frames; per arm position the turntable axis and the
+arm-to-arm transform, refined and the robot's prior).
 """
 
 from __future__ import annotations
@@ -40,16 +46,20 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, dumps_json, read_png, read_scene
+from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, RawSession, dumps_json, read_json, read_png, read_scene
 from tdof20.formats.bop import model_path, read_model_mesh
 from tdof20.geometry.transforms import invert
 
-__all__ = ["evaluate_scene", "evaluate_command", "model_centre", "TARGETS"]
+if TYPE_CHECKING:   # the type only: the registration imports open3d
+    from tdof20.annotate.registration import RegistrationResult
+
+__all__ = ["evaluate_scene", "evaluate_command", "evaluate_against_truth", "model_centre", "truth_T_ref_frame",
+           "TARGETS"]
 
 # issue 4, part 7: what an annotation of a simulated scene must reach (medians)
 TARGETS = {"motion_rot_deg": ("<=", 0.1), "motion_trans_mm": ("<=", 1.0), "surface_mm": ("<=", 1.0),
@@ -372,3 +382,116 @@ def evaluate_command(scene_dir: str | Path, truth_dir: str | Path, max_frames: i
                      n_points: int = 2000) -> str:
     """The JSON text ``tdof20 annotate evaluate SCENE_DIR --truth RAW_DIR/truth`` prints."""
     return dumps_json(evaluate_scene(scene_dir, truth_dir, max_frames=max_frames, n_points=n_points), indent=2)
+
+
+# ---------------------------------------------------------------------------------------------
+# the registration against the simulator's truth
+# ---------------------------------------------------------------------------------------------
+def _T_diff(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (deg) and translation (mm) of inv(A) @ B, for stacks (...,4,4)."""
+    D = invert(A) @ np.asarray(B, float)
+    return _rot_deg(D[..., :3, :3]), np.linalg.norm(D[..., :3, 3], axis=-1)
+
+
+def _reg_stats(x: np.ndarray) -> dict:
+    """{median, p95, max, n} of a registration error."""
+    x = np.asarray(x, float)
+    if x.size == 0:
+        return {"median": None, "p95": None, "max": None, "n": 0}
+    return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95)), "max": float(x.max()),
+            "n": int(x.size)}
+
+
+def truth_T_ref_frame(session_dir: str | Path) -> np.ndarray:
+    """(n_arms, steps, 4, 4) true T_ref_frame from truth/scene_camera.json (NaN where absent):
+    ``T_cam00_table @ inv(T_cam_ak_table)``."""
+    session = RawSession.open(session_dir)
+    if session.truth_dir is None:
+        raise TdofError("no truth/ folder: evaluation needs a simulated session", session.path)
+    cams = read_json(session.truth_dir / "scene_camera.json")
+    n_arms, K = session.info.n_arms, session.info.steps
+    T = np.full((n_arms, K, 4, 4), np.nan)
+    for a in range(n_arms):
+        for k in range(K):
+            c = cams.get(str(a * K + k))
+            if c is None or "cam_R_w2c" not in c:
+                continue
+            M = np.eye(4)
+            M[:3, :3] = np.asarray(c["cam_R_w2c"], float).reshape(3, 3)
+            M[:3, 3] = np.asarray(c["cam_t_w2c"], float)
+            T[a, k] = M                                   # T_cam_table
+    if np.isnan(T[0, 0]).any():
+        raise TdofError("truth has no camera pose for arm 0 step 0", session.truth_dir / "scene_camera.json")
+    ok = ~np.isnan(T).any(axis=(-1, -2))
+    out = np.full_like(T, np.nan)
+    out[ok] = T[0, 0] @ invert(T[ok])
+    return out
+
+
+def evaluate_against_truth(result: "RegistrationResult", session_dir: str | Path, max_pairs: int = 20000,
+                           seed: int = 0) -> dict:
+    """Errors of the registration against the simulator's truth (flagged frames left out).
+
+    Returns a dict with, each as {median, p95, max, n}:
+    ``frame_to_ref`` (T_ref_frame itself), ``consecutive`` (motions between neighbouring steps of
+    an arm) and ``pairs`` (motions between all pairs of frames, sampled to ``max_pairs``) — each
+    with ``rot_deg`` and ``trans_mm`` (the motion ``inv(T_ref_i) @ T_ref_j``, cam j -> cam i,
+    compared as ``inv(est) @ true``); per arm the axis direction error (deg), the axis point's
+    distance from the true table centre (mm), and the T_ref_arm error of the refined and of the
+    robot prior transform."""
+    truth = truth_T_ref_frame(session_dir)
+    est = result.poses()
+    n_arms, K = truth.shape[:2]
+    keys = [(f.arm, f.step) for f in result.frames
+            if result.usable(f.arm, f.step) and not np.isnan(truth[f.arm, f.step]).any()]
+    E = np.stack([est[a, k] for a, k in keys])
+    G = np.stack([truth[a, k] for a, k in keys])
+    out: dict[str, Any] = {"n_frames": len(keys), "n_flagged": len(result.flagged_frames())}
+    rd, tm = _T_diff(E, G)
+    out["frame_to_ref"] = {"rot_deg": _reg_stats(rd), "trans_mm": _reg_stats(tm)}
+    pos = {key: n for n, key in enumerate(keys)}
+    cons = [(pos[(a, k)], pos[(a, k + 1)]) for a, k in keys if (a, k + 1) in pos]
+
+    def motion_err(pairs):
+        if not pairs:
+            return {"rot_deg": _reg_stats([]), "trans_mm": _reg_stats([])}
+        i, j = np.array(pairs).T
+        Me = invert(E[i]) @ E[j]
+        Mg = invert(G[i]) @ G[j]
+        r, t = _T_diff(Me, Mg)
+        return {"rot_deg": _reg_stats(r), "trans_mm": _reg_stats(t)}
+    out["consecutive"] = motion_err(cons)
+    n = len(keys)
+    if n * (n - 1) // 2 <= max_pairs:
+        i, j = np.triu_indices(n, 1)
+    else:
+        rng = np.random.default_rng(seed)
+        i = rng.integers(0, n, max_pairs)
+        j = rng.integers(0, n, max_pairs)
+        m = i != j
+        i, j = i[m], j[m]
+    out["pairs"] = motion_err(list(zip(i.tolist(), j.tolist())))
+    # per arm: axis and arm-to-arm transforms
+    session = RawSession.open(session_dir)
+    cams = read_json(session.truth_dir / "scene_camera.json")
+    arms = []
+    for ar in result.arms:
+        c = cams.get(str(ar.arm * K))
+        entry: dict[str, Any] = {"arm": ar.arm}
+        if c is not None:
+            R = np.asarray(c["cam_R_w2c"], float).reshape(3, 3)
+            t = np.asarray(c["cam_t_w2c"], float)
+            up = R[:, 2]
+            entry["axis_deg"] = float(np.degrees(np.arccos(np.clip(ar.axis_dir @ up, -1, 1))))
+            entry["axis_point_mm"] = float(np.linalg.norm(ar.axis_point - t))
+            d = ar.axis_point - t
+            entry["axis_line_mm"] = float(np.linalg.norm(d - (d @ up) * up))
+        if not np.isnan(truth[ar.arm, 0]).any():
+            Tt = truth[ar.arm, 0]                         # cam(a,0) -> cam(0,0)
+            r1, t1 = _T_diff(ar.T_ref_arm, Tt)
+            r0, t0 = _T_diff(ar.T_ref_arm_prior, Tt)
+            entry.update({"T_ref_arm_rot_deg": float(r1), "T_ref_arm_trans_mm": float(t1),
+                          "prior_rot_deg": float(r0), "prior_trans_mm": float(t0)})
+        arms.append(entry)
+    out["arms"] = arms
+    return out

@@ -1,0 +1,234 @@
+"""The model and place stages' algorithms: which cluster of the reconstruction is which object,
+and each object's pose in the reference frame.
+
+* :func:`match_models` (model stage, with a models folder) — a shape test (height above the
+  table, footprint radius: :func:`~tdof20.annotate.fusion.cluster_shape`) picks up to
+  ``place.match_candidates`` clusters per object, a quick upright fit
+  (:func:`~tdof20.annotate.models.fit_model`) scores each, a one-to-one assignment (scipy
+  ``linear_sum_assignment``) decides;
+* :func:`place_models` (place stage) — each matched fit refined with dense model samples, set
+  upright on the table (:func:`upright`: the model's z along the table normal, when it is within
+  ``place.upright_max_deg``), then the quality gate (fitness, mean distance): a bad fit is a
+  TdofError, no label is written from it;
+* :func:`copy_models` — the scene's models folder from the user's: these objects' files byte for
+  byte, their ``models_info.json`` entries, ``keypoints.json`` and samples where present;
+* :func:`load_meshes`, :func:`model_samples`, and :func:`T_list` / :func:`T_arr` (a pose as the
+  16 numbers ``fits.json`` and ``placements.json`` hold).
+
+Options: :class:`~tdof20.annotate.config.PlaceConfig` (``cfg.place``) and
+:class:`~tdof20.annotate.models.ModelFitConfig` (``cfg.fit``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tdof20.annotate.config import AnnotateConfig
+from tdof20.annotate.fusion import cluster_shape, point_cloud
+from tdof20.annotate.models import fit_model
+from tdof20.errors import TdofError
+from tdof20.formats import atomic_write_bytes, read_json, write_json
+from tdof20.formats.bop import read_models_info, write_models_info
+
+__all__ = ["T_arr", "T_list", "copy_file", "copy_models", "load_meshes", "match_models", "model_samples",
+           "place_models", "upright"]
+
+
+# ---------------------------------------------------------------------------------------------
+# models and poses
+# ---------------------------------------------------------------------------------------------
+def load_meshes(models_dir: Path, obj_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """{obj_id: (V, F)} of a models folder, checked by :func:`~tdof20.annotate.modelbuild.load_models`."""
+    from tdof20.annotate.modelbuild import load_models
+
+    return {o: (V, F) for o, (V, F, _) in load_models(models_dir, obj_ids).items()}
+
+
+def model_samples(models: dict, n: int) -> dict[int, np.ndarray]:
+    """{obj_id: (n,3) surface samples} of {obj_id: (V, F)} (seeded: the same on every run)."""
+    from tdof20.annotate.modelbuild import sample_points
+
+    return {o: sample_points(v[0], v[1], n, seed=0) for o, v in models.items()}
+
+
+def T_list(T: np.ndarray) -> list[float]:
+    """A (4,4) pose as 16 floats (row-major)."""
+    return [float(x) for x in np.asarray(T, float).reshape(16)]
+
+
+def T_arr(x: Any) -> np.ndarray:
+    """16 numbers (row-major) as a (4,4) pose."""
+    return np.asarray(x, float).reshape(4, 4)
+
+
+def _thin(points: np.ndarray, voxel: float) -> np.ndarray:
+    return np.asarray(point_cloud(points).voxel_down_sample(voxel).points)
+
+
+def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a to unit vector b."""
+    from tdof20.geometry import rotation_matrix
+
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    ang = math.atan2(s, float(a @ b))
+    if s < 1e-12:
+        return np.eye(3)
+    return rotation_matrix(axis / s, ang)
+
+
+def upright(T: np.ndarray, up: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, float]:
+    """T with the model's z axis turned onto ``up`` about the model point ``centre``; and the tilt
+    removed (deg)."""
+    R = T[:3, :3]
+    tilt = math.degrees(math.acos(float(np.clip(R[:, 2] @ up / np.linalg.norm(up), -1, 1))))
+    Rn = _rot_between(R[:, 2], up) @ R
+    c = R @ centre + T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = Rn
+    out[:3, 3] = c - Rn @ centre
+    return out, tilt
+
+
+# ---------------------------------------------------------------------------------------------
+# the model stage: objects to clusters
+# ---------------------------------------------------------------------------------------------
+def match_models(models: dict, objects: list[int], clusters: list[np.ndarray], plane: np.ndarray,
+                 cfg: AnnotateConfig, progress: bool) -> tuple[list[dict], list[int]]:
+    """Assign each object (an obj_id of session.json) to a cluster, one to one.
+
+    Shape costs (relative differences of the height above the table and of the footprint radius)
+    choose up to ``match_candidates`` clusters per object; each is scored by a quick upright fit
+    (truncated mean distance of the cluster to the posed model); the Hungarian assignment on those
+    scores (untried pairs cost more than any tried one) decides."""
+    from scipy.optimize import linear_sum_assignment
+
+    from tdof20.progress import progress as _progress
+
+    pc = cfg.place
+    up, off = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
+    n_o, n_c = len(objects), len(clusters)
+    samples = model_samples({o: models[o] for o in set(objects)}, pc.match_samples)
+    shape_m = {}
+    for o in set(objects):
+        V = models[o][0]
+        P = samples[o]
+        h = P[:, 2] - V[:, 2].min()
+        r = np.linalg.norm(P[:, :2] - np.median(P[:, :2], axis=0), axis=1)
+        shape_m[o] = (float(np.percentile(h, 99.5)), float(np.percentile(r, 99)))
+    shape_c = [cluster_shape(c, up, off) for c in clusters]
+    S = np.array([[abs(hc - shape_m[o][0]) / shape_m[o][0] + abs(rc - shape_m[o][1]) / shape_m[o][1]
+                   for hc, rc in shape_c] for o in objects]).reshape(n_o, n_c)
+    thin = {}
+    quick = dataclasses.replace(cfg.fit, icp_mm=tuple(pc.match_icp_mm))
+    fits: dict[tuple[int, int], Any] = {}
+
+    def fit(i: int, j: int):
+        if j not in thin:
+            thin[j] = _thin(clusters[j], pc.match_voxel_mm)
+        o = objects[i]
+        fits[(i, j)] = fit_model(samples[o], thin[j], quick, up=up, model_z_min=float(models[o][0][:, 2].min()),
+                                 table_plane=plane)
+        return fits[(i, j)]
+
+    pairs = []
+    for i in range(n_o):
+        order = np.argsort(S[i])
+        pairs += [(i, int(j)) for j in order[:pc.match_candidates] if S[i, j] <= S[i, order[0]] + pc.match_shape_margin]
+    C = np.full((n_o, n_c), 0.0)
+    with _progress(progress, unit="fit") as bar:
+        task = bar.add_task("match models to clusters", total=len(pairs))
+        for i, j in pairs:
+            fit(i, j)
+            bar.advance(task)
+    big = 10.0 + max([f.score for f in fits.values()], default=0.0)
+    for i in range(n_o):
+        for j in range(n_c):
+            C[i, j] = fits[(i, j)].score if (i, j) in fits else big + S[i, j]
+    rows, cols = linear_sum_assignment(C)
+    out = []
+    for i, j in zip(rows.tolist(), cols.tolist()):
+        f = fits.get((i, j)) or fit(i, j)
+        out.append({"index": i, "obj_id": int(objects[i]), "cluster": j, "T_ref_model": T_list(f.T_ref_model),
+                    "match_score_mm": float(f.score), "match_fitness": float(f.fitness), "shape_cost": float(S[i, j]),
+                    "tried": {int(jj): round(float(ff.score), 4) for (ii, jj), ff in fits.items() if ii == i}})
+    out.sort(key=lambda e: e["index"])
+    unused = sorted(set(range(n_c)) - set(cols.tolist()))
+    return out, unused
+
+
+# ---------------------------------------------------------------------------------------------
+# the place stage: poses, the quality gate, the scene's models folder
+# ---------------------------------------------------------------------------------------------
+def place_models(objects: list[dict], meshes: dict, clusters: list[np.ndarray], cluster_files: list[str],
+                 up: np.ndarray, cfg: AnnotateConfig, where: Path) -> list[dict]:
+    """The placements of the matched objects (``fits.json``'s ``objects``: obj_id, cluster, the
+    matching fit's ``T_ref_model``): each fit refined on its cluster with ``place.fit_samples``
+    model samples, set upright on the table (normal ``up``) when tilted less than
+    ``place.upright_max_deg``, and checked against the quality gate — a bad fit is a TdofError
+    naming ``where`` and the cluster's file (``cluster_files``). Returns one placement per object
+    (gt_id, obj_id, cluster, T_ref_model, fitness, rmse_mm, score_mm, upright_correction_deg,
+    source, note), in the order given."""
+    pc = cfg.place
+    samples = model_samples(meshes, pc.fit_samples)
+    placements: list[dict] = []
+    for e in objects:
+        o, j = int(e["obj_id"]), int(e["cluster"])
+        V = meshes[o][0]
+        f = fit_model(samples[o], clusters[j], cfg.fit, init=T_arr(e["T_ref_model"]))
+        T, tilt = f.T_ref_model, None
+        note = ""
+        if pc.upright:
+            Tu, tilt = upright(f.T_ref_model, up, 0.5 * (V.min(0) + V.max(0)))
+            if tilt <= pc.upright_max_deg:
+                T = Tu
+            else:
+                note = f"tilted {tilt:.1f} deg from the table normal (> place.upright_max_deg): kept as fitted"
+        bad = []
+        if f.fitness < pc.min_fitness:
+            bad.append(f"fitness {f.fitness:.2f} < {pc.min_fitness}")
+        if f.score > pc.max_score_mm:
+            bad.append(f"mean distance {f.score:.2f} mm > {pc.max_score_mm}")
+        if bad:
+            raise TdofError(f"object {o} fits its cluster badly ({', '.join(bad)}; work/reconstruction/"
+                            f"{cluster_files[j]}): the wrong model, a model in other units, or a "
+                            f"bad reconstruction; no labels are written from it", where)
+        placements.append({"gt_id": len(placements), "obj_id": o, "cluster": j, "T_ref_model": T_list(T),
+                           "fitness": float(f.fitness), "rmse_mm": float(f.rmse), "score_mm": float(f.score),
+                           "upright_correction_deg": None if tilt is None or note else round(float(tilt), 4),
+                           "source": "models", "note": note})
+    return placements
+
+
+def copy_file(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst`` byte for byte, atomically (the folder created)."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(dst, src.read_bytes())
+
+
+def copy_models(md: Path, dst: Path, obj_ids: list[int]) -> None:
+    """The scene's models folder ``dst`` (replaced) from the models folder ``md``: the objects'
+    files byte for byte (and their ``_samples.npy``), their ``models_info.json`` entries and, where
+    ``md`` has one, their part of ``keypoints.json``."""
+    if dst.exists():
+        shutil.rmtree(dst)
+    infos = read_models_info(md)
+    for o in obj_ids:
+        copy_file(md / f"obj_{o:06d}.ply", dst / f"obj_{o:06d}.ply")
+        for extra in (f"obj_{o:06d}_samples.npy",):
+            if (md / extra).exists():
+                copy_file(md / extra, dst / extra)
+    write_models_info(dst, {o: infos[o] for o in obj_ids})
+    kp = md / "keypoints.json"
+    if kp.exists():
+        k = read_json(kp)
+        if isinstance(k, dict):
+            write_json(dst / "keypoints.json", {str(o): k[str(o)] for o in obj_ids if str(o) in k})
