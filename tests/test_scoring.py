@@ -23,7 +23,8 @@ from tdof20.objects import export_models, get_object
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 OBJS = (1, 5, 17)  # tumbler (continuous symmetry), beaker with spout (asymmetric), square vase (4-fold)
-KEYS = {"n", "add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s"}
+KEYS = {"n", "add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s", "ar_mssd", "ar_mspd"}  # no depth: no VSD, AR
+PARTS = {"objects", "mean", "all", "scenes"}
 
 
 def rot(axis, deg) -> np.ndarray:
@@ -206,7 +207,7 @@ def test_ground_truth_scores_one_everywhere(dataset, tmp_path):
     root, gt = dataset
     csv = write_results_csv(tmp_path / "gt_tdof20-hard.csv", rows_of(gt))
     out = score(csv, root, split="hard")
-    assert set(out) == {"objects", "mean", "all"}
+    assert set(out) == PARTS
     assert set(out["objects"]) == {"1", "5", "17"}
     for part in list(out["objects"].values()) + [out["mean"], out["all"]]:
         assert set(part) == KEYS
@@ -266,7 +267,7 @@ def test_json_report_and_plots(dataset, tmp_path):
     data = json.loads(js.read_text())
     assert set(data) == {"good_tdof20-hard", "noisy_tdof20-hard"}
     for summ in data.values():
-        assert set(summ) == {"objects", "mean", "all"}
+        assert set(summ) == PARTS
         for part in list(summ["objects"].values()) + [summ["mean"], summ["all"]]:
             assert set(part) == KEYS
             assert all(0.0 <= part[k] <= 1.0 for k in KEYS - {"n"})
@@ -279,7 +280,7 @@ def test_json_report_and_plots(dataset, tmp_path):
         assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     one = tmp_path / "one.json"
     score_command([good], root, None, root / "test_targets_simple.json", one, None)
-    assert set(json.loads(one.read_text())) == {"objects", "mean", "all"}
+    assert set(json.loads(one.read_text())) == PARTS
 
 
 def test_report_marks_asymmetric_objects(dataset):

@@ -41,6 +41,18 @@ Fast kernels (:class:`ModelPoints` holds what they precompute per object):
 * :func:`adds_cv_residuals`: exact errors at random points minus a per-point control variate
   whose mean over the model is exactly the cluster estimate; the scorer uses their mean to
   correct the estimates (for AUCs), see :mod:`tdof20.benchmark.scoring`.
+
+BOP challenge metrics (BOP19; bop_toolkit ``pose_error.py``, ``eval_calc_errors.py``):
+
+* :func:`symmetry_transformations`: a models_info.json entry's symmetries as BOP discretises them.
+* References, one pose: :func:`mssd` (mm), :func:`mspd` (px), :func:`vsd_from_depths` (one error
+  per tau, from full-frame depths; :meth:`DepthRenderer.render` renders them by ray casting).
+* Fast, many poses of one object: :func:`vsd_batch` casts rays only inside each pose's footprint
+  (the projected convex hull, :meth:`DepthRenderer.footprints`) and equals the reference on full
+  frames bit for bit (the same rays); :func:`mssd_fast` and :func:`mspd_fast` compute the min over
+  symmetries of the max over points by branch and bound over (symmetry, node of a
+  :class:`PointTree`), exactly, or (``binof``) only until each error's position among the
+  thresholds is certain.
 """
 
 from __future__ import annotations
@@ -287,9 +299,46 @@ class ModelPoints:
     fine_leaf: int = 6
     grid_nodes: int = 40_000
     grid_margin: float = 0.15  # of the diameter (at least 10 mm)
+    sym_R: np.ndarray | None = None  # (S,3,3) symmetry transformations (BOP discretisation; MSSD, MSPD)
+    sym_t: np.ndarray | None = None  # (S,3); None: the identity only
 
     def __post_init__(self):
         self.pts = np.ascontiguousarray(_pts(self.pts))
+
+    @cached_property
+    def syms(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R (S,3,3), t (S,3)) symmetry transformations, the identity alone when none are given."""
+        if self.sym_R is None:
+            return np.eye(3)[None], np.zeros((1, 3))
+        return np.asarray(self.sym_R, np.float64).reshape(-1, 3, 3), np.asarray(self.sym_t, np.float64).reshape(-1, 3)
+
+    @cached_property
+    def hull_idx(self) -> np.ndarray:
+        """Indices of the points on the convex hull (all points where the hull is degenerate)."""
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            return np.sort(ConvexHull(self.pts).vertices)
+        except (QhullError, ValueError):
+            return np.arange(self.n)
+
+    @cached_property
+    def hull_tree(self) -> "PointTree":
+        """Nested clusters of the hull vertices (MSSD: a convex function peaks on the hull)."""
+        return make_point_tree(self.pts[self.hull_idx])
+
+    @cached_property
+    def pts_tree(self) -> "PointTree":
+        """Nested clusters of all points (MSPD)."""
+        return make_point_tree(self.pts)
+
+    @cached_property
+    def sym_centre(self) -> tuple[np.ndarray, float]:
+        """(centre, radius) of a ball holding the symmetric images R_s m + t_s of :attr:`centre`."""
+        R, t = self.syms
+        c = np.einsum("sij,j->si", R, self.centre) + t
+        m = 0.5 * (c.min(0) + c.max(0))
+        return m, float(np.sqrt(((c - m) ** 2).sum(1).max()))
 
     @property
     def n(self) -> int:
@@ -756,4 +805,701 @@ __all__ = [
     "add_fast", "add_fast_with_error", "proj2d_fast", "proj2d_bounds", "adds_cluster_bounds", "adds_point_bounds",
     "adds_decide", "adds_exact",
     "adds_cv_residuals",
+]
+
+
+# =============================================================================================
+# BOP challenge metrics (BOP19): VSD, MSSD, MSPD
+# =============================================================================================
+VSD_DELTA = 15.0  # mm: tolerance of the visibility test
+VSD_TAUS = np.arange(0.05, 0.51, 0.05)  # misalignment tolerances, fractions of the diameter
+VSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # correctness thresholds of the VSD error
+MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # fractions of the diameter
+MSPD_THRESHOLDS = np.arange(5, 51, 5).astype(np.float64)  # pixels at an image width of 640
+MSPD_WIDTH = 640.0  # MSPD errors are scaled by MSPD_WIDTH / image width (BOP)
+MAX_SYM_DISC_STEP = 0.01  # continuous symmetries: the farthest vertex moves <= 1% of the diameter per step
+_BNB_TOL = 1e-6  # absolute slack (mm or px) of the branch-and-bound comparisons (float64 rounding)
+
+
+def rotation_about(axis, angle: float) -> np.ndarray:
+    """(3,3) rotation by ``angle`` radians about ``axis`` (any length; Rodrigues' formula)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    c, s = np.cos(angle), np.sin(angle)
+    W = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return c * np.eye(3) + s * W + (1.0 - c) * np.outer(a, a)
+
+
+def symmetry_transformations(info: dict, max_sym_disc_step: float = MAX_SYM_DISC_STEP
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """The symmetry transformations of a models_info.json entry as BOP discretises them:
+    (R (S,3,3), t (S,3)), model -> model, the identity first. Discrete symmetries are the 4x4
+    matrices of ``symmetries_discrete`` plus the identity; each continuous symmetry (axis through
+    ``offset``) becomes n = ceil(pi / max_sym_disc_step) rotations by 2 pi k / n (so the vertex
+    farthest from the axis moves at most ``max_sym_disc_step`` of the diameter per step), and with
+    continuous symmetries every discrete one is composed with every continuous step (C o D)."""
+    disc = [(np.eye(3), np.zeros(3))]
+    for sym in info.get("symmetries_discrete") or []:
+        T = np.asarray(sym, dtype=np.float64).reshape(4, 4)
+        disc.append((T[:3, :3], T[:3, 3]))
+    cont = []
+    for sym in info.get("symmetries_continuous") or []:
+        axis, offset = np.asarray(sym["axis"], float), np.asarray(sym["offset"], float).reshape(3)
+        n = int(np.ceil(np.pi / max_sym_disc_step))
+        for k in range(n):
+            R = rotation_about(axis, k * 2.0 * np.pi / n)
+            cont.append((R, offset - R @ offset))
+    if cont:
+        trans = [(Rc @ Rd, Rc @ td + tc) for Rd, td in disc for Rc, tc in cont]
+    else:
+        trans = disc
+    return np.stack([R for R, _ in trans]), np.stack([t for _, t in trans])
+
+
+def _syms(syms) -> tuple[np.ndarray, np.ndarray]:
+    if syms is None:
+        return np.eye(3)[None], np.zeros((1, 3))
+    R, t = syms
+    return np.asarray(R, np.float64).reshape(-1, 3, 3), np.asarray(t, np.float64).reshape(-1, 3)
+
+
+def project_points(X: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N,2) pixels of camera points X (N,3); inf where a point has depth <= 0."""
+    H = X @ np.asarray(K, np.float64).T
+    z = H[:, 2:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = H[:, :2] / z
+    uv[(z[:, 0] <= 0)] = np.inf
+    return uv
+
+
+# --- reference metrics (one pose; what the fast kernels must equal) --------------------------
+def mssd(R_est, t_est, R_gt, t_gt, pts, syms=None) -> float:
+    """Maximum Symmetry-Aware Surface Distance (mm): min over the symmetries (R_s, t_s) of
+    max_i |(R_e p_i + t_e) - (R_g (R_s p_i + t_s) + t_g)|. ``syms``: (R (S,3,3), t (S,3)) from
+    :func:`symmetry_transformations` (None: the identity only)."""
+    P = _pts(pts)
+    Re, te = (np.asarray(x, np.float64) for x in (R_est, t_est))
+    Rg, tg = (np.asarray(x, np.float64) for x in (R_gt, t_gt))
+    X = P @ Re.T + te.reshape(3)
+    best = np.inf
+    for Rs, ts in zip(*_syms(syms)):
+        Y = P @ (Rg @ Rs).T + (Rg @ ts + tg.reshape(3))
+        best = min(best, float(np.sqrt(((X - Y) ** 2).sum(1)).max()))
+    return best
+
+
+def mspd(R_est, t_est, R_gt, t_gt, K, pts, syms=None) -> float:
+    """Maximum Symmetry-Aware Projection Distance (px): min over the symmetries of
+    max_i |pi(K (R_e p_i + t_e)) - pi(K (R_g (R_s p_i + t_s) + t_g))| (pi: perspective division;
+    a point at depth <= 0 makes its term infinite)."""
+    P = _pts(pts)
+    Re, te = (np.asarray(x, np.float64) for x in (R_est, t_est))
+    Rg, tg = (np.asarray(x, np.float64) for x in (R_gt, t_gt))
+    ue = project_points(P @ Re.T + te.reshape(3), K)
+    best = np.inf
+    for Rs, ts in zip(*_syms(syms)):
+        ug = project_points(P @ (Rg @ Rs).T + (Rg @ ts + tg.reshape(3)), K)
+        with np.errstate(invalid="ignore"):
+            d = np.sqrt(((ue - ug) ** 2).sum(1))
+        d[~np.isfinite(d)] = np.inf
+        best = min(best, float(d.max()))
+    return best
+
+
+def ray_norms(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera rays (x, y, 1) = K^-1 (u, v, 1) through pixel centres (u, v) (float64), and |(x, y, 1)|."""
+    K = np.asarray(K, np.float64)
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return x, y, np.sqrt(x * x + y * y + 1.0)
+
+
+def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Depth (H,W) along the optical axis -> distance from the camera centre (float64)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return depth.astype(np.float64) * ray_norms(K, u, v)[2]
+
+
+def vsd_from_depths(depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.ndarray, K: np.ndarray,
+                    diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS) -> np.ndarray:
+    """Visible Surface Discrepancy for each tau (T,), BOP19 form (step cost, normalised by the
+    diameter): depths (H,W) in mm, 0 = none; the test depth's missing pixels count as visible.
+    V_g = {d_g > 0 and (d_g - d_test <= delta or d_test = 0)}, V_e = {d_e > 0 and (d_e - d_test <=
+    delta or d_test = 0 or V_g)} (d: distances from the camera centre); e = (#{V_g & V_e with
+    |d_g - d_e| / diameter >= tau} + #(V_g | V_e) - #(V_g & V_e)) / #(V_g | V_e), 1 if the union is empty."""
+    dt, dg, de = (distance_image(d, K) for d in (depth_test, depth_gt, depth_est))
+    vg = (dg > 0) & (((dg.astype(np.float32) - dt.astype(np.float32)) <= delta) | (dt == 0))
+    ve = (de > 0) & (((de.astype(np.float32) - dt.astype(np.float32)) <= delta) | (dt == 0))
+    ve |= vg & (de > 0)
+    inter, union = vg & ve, vg | ve
+    n_union = int(union.sum())
+    if n_union == 0:
+        return np.ones(len(taus))
+    dist = np.abs(dg[inter] - de[inter]) / diameter
+    comp = n_union - int(inter.sum())
+    return np.array([(int((dist >= tau).sum()) + comp) / n_union for tau in taus])
+
+
+class DepthRenderer:
+    """Depth images of one object model by ray casting (open3d RaycastingScene, built once in
+    the model frame; the rays move into the model frame). Pixel centres at integer (u, v); depth
+    along the optical axis in mm, 0 where the ray misses."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        from tdof20.geometry.raycast import convex_hull_points
+        from tdof20.o3d import o3d
+
+        V = np.asarray(vertices, np.float64)
+        F = np.asarray(faces, np.int64)
+        if len(F) == 0:
+            raise ValueError("a triangle mesh is needed to render depth")
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+        try:
+            self.hull = np.asarray(convex_hull_points(V, F), np.float64)
+        except Exception:  # degenerate (flat) meshes: every vertex bounds the silhouette
+            self.hull = V
+        self._o3d = o3d
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """t of the first hit of rays (model frame, float32 (n,3) each); 0 where none."""
+        if len(origins) == 0:
+            return np.zeros(0, np.float32)
+        rays = np.empty((len(origins), 6), np.float32)
+        rays[:, :3] = origins
+        rays[:, 3:] = dirs
+        return self.cast_rays(rays)
+
+    def cast_rays(self, rays: np.ndarray) -> np.ndarray:
+        """t of the first hit of rays (n,6) float32 (origin, direction; model frame); 0 where none."""
+        if len(rays) == 0:
+            return np.zeros(0, np.float32)
+        t = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, np.float32)))
+        t = t["t_hit"].numpy()
+        t[~np.isfinite(t)] = 0.0
+        return t
+
+    def render(self, R, t, K, width: int, height: int) -> np.ndarray:
+        """(height, width) float32 depth of the model at pose (R, t): every pixel cast."""
+        v, u = np.mgrid[0:height, 0:width].reshape(2, -1).astype(np.float64)
+        x, y, _ = ray_norms(K, u, v)
+        R = np.asarray(R, np.float64)
+        t = np.asarray(t, np.float64).reshape(3)
+        d = np.empty((len(x), 3), np.float32)
+        for i in range(3):  # R^T (x, y, 1): the rays in the model frame
+            d[:, i] = x * R[0, i] + y * R[1, i] + R[2, i]
+        o = np.broadcast_to((-R.T @ t).astype(np.float32), d.shape)
+        return self.cast(o, d).reshape(height, width)
+
+
+    def footprints(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int):
+        """Where the model at poses (R, t) (B,...) can be seen: (boxes (B,4) int [v0, v1) x [u0, u1)
+        clipped to the image (empty when v0 >= v1 or u0 >= u1), polygons: per pose the convex hull
+        (k,2) int32 (u, v) of the projected hull vertices, or None for the whole box). A pixel
+        whose centre lies more than a pixel outside the polygon cannot be hit; poses whose hull
+        reaches depth <= 1 mm get the whole image and no polygon."""
+        import cv2
+
+        X = np.einsum("bij,nj->bni", R, self.hull) + t[:, None, :]
+        H = np.einsum("bij,bnj->bni", K, X)
+        z = X[..., 2]
+        near = (z <= 1.0).any(axis=1)  # the projection is unbounded: cast everything
+        gone = (z <= 0.0).all(axis=1)  # rays (depth > 0) cannot reach it: nothing to see
+        zz = np.where(z > 0, H[..., 2], 1.0)
+        u, v = H[..., 0] / zz, H[..., 1] / zz
+        out = np.stack([np.floor(v.min(1)) - 2, np.ceil(v.max(1)) + 3,
+                        np.floor(u.min(1)) - 2, np.ceil(u.max(1)) + 3], axis=1)
+        lim = np.array([height, height, width, width], np.float64)
+        out = np.clip(out, 0, lim)
+        out[near] = [0, height, 0, width]
+        out[gone] = 0
+        boxes = out.astype(np.int64)
+        big = 1e6  # beyond this the polygon would overflow int32; the box alone is used
+        skip = near | (boxes[:, 0] >= boxes[:, 1]) | (boxes[:, 2] >= boxes[:, 3]) | \
+            (np.abs(u).max(axis=1) > big) | (np.abs(v).max(axis=1) > big)
+        uv = np.rint(np.stack([np.where(skip[:, None], 0, u), np.where(skip[:, None], 0, v)], axis=2)).astype(np.int32)
+        polys = [None if skip[b] else cv2.convexHull(uv[b]).reshape(-1, 2) for b in range(len(R))]
+        return boxes, polys
+
+    def boxes(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+        """The boxes of :meth:`footprints`."""
+        return self.footprints(R, t, K, width, height)[0]
+
+
+def _footprint_pixels(poly, box, U0: int, V0: int, W: int):
+    """(ys, xs) local to the box origin (U0, V0) of the pixels of ``box`` that the polygon (grown by
+    a 3-pixel-wide outline) covers, and their flat index in a W-wide raster at (U0, V0)."""
+    import cv2
+
+    v0, v1, u0, u1 = (int(x) for x in box)
+    h, w = v1 - v0, u1 - u0
+    if poly is None:
+        ys, xs = np.divmod(np.arange(h * w), w)
+    else:
+        m = np.zeros((h, w), np.uint8)
+        q = (poly - np.array([u0, v0], np.int32)).reshape(-1, 1, 2)
+        cv2.fillConvexPoly(m, q, 1)
+        cv2.polylines(m, [q], True, 1, 3)
+        ys, xs = np.nonzero(m)
+    ys = ys + (v0 - V0)
+    xs = xs + (u0 - U0)
+    return ys, xs, ys * W + xs
+
+
+def vsd_batch(renderer: DepthRenderer, R_est, t_est, R_gt, t_gt, K, depth_test: np.ndarray, image: np.ndarray,
+              diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS, max_rays: int = 1 << 20) -> np.ndarray:
+    """VSD (B,T) of B poses of one object, exactly :func:`vsd_from_depths` on full renders, but
+    rendering only where it matters: per pose each render is cast inside the projected convex hull
+    of the model (grown by a pixel, :meth:`DepthRenderer.footprints`; no other pixel can be hit),
+    and poses whose footprints' boxes do not meet have an empty intersection, so VSD 1 for every
+    tau, without rendering. ``depth_test`` (n,H,W) float32 mm test depths, ``image`` (B,) the
+    index of each pose's test image."""
+    Re, te = _poses(R_est, t_est)
+    Rg, tg = _poses(R_gt, t_gt)
+    Ks = np.ascontiguousarray(_Ks(K, len(Re)))
+    taus = np.asarray(taus, np.float64)
+    B, T = len(Re), len(taus)
+    h, w = depth_test.shape[1:]
+    out = np.ones((B, T))
+    if B == 0:
+        return out
+    be, pe = renderer.footprints(Re, te, Ks, w, h)
+    bg, pg = renderer.footprints(Rg, tg, Ks, w, h)
+    meet = (np.maximum(be[:, 0], bg[:, 0]) < np.minimum(be[:, 1], bg[:, 1])) & \
+           (np.maximum(be[:, 2], bg[:, 2]) < np.minimum(be[:, 3], bg[:, 3]))
+    todo = np.flatnonzero(meet)
+    area = (be[:, 1] - be[:, 0]) * (be[:, 3] - be[:, 2]) + (bg[:, 1] - bg[:, 0]) * (bg[:, 3] - bg[:, 2])
+    start = 0
+    while start < len(todo):  # chunks of about max_rays rays
+        cum = np.cumsum(area[todo[start:]])
+        stop = start + max(1, int(np.searchsorted(cum, max_rays, side="right")))
+        idx = todo[start:stop]
+        start = stop
+        out[idx] = _vsd_lists(renderer, Re[idx], te[idx], Rg[idx], tg[idx], Ks[idx], be[idx], bg[idx],
+                              [pe[i] for i in idx], [pg[i] for i in idx], depth_test, image[idx], diameter,
+                              delta, taus)
+    return out
+
+
+def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, diameter, delta, taus):
+    n = len(Re)
+    V0 = np.minimum(be[:, 0], bg[:, 0])
+    U0 = np.minimum(be[:, 2], bg[:, 2])
+    W = np.maximum(be[:, 3], bg[:, 3]) - U0
+    Hh = np.maximum(be[:, 1], bg[:, 1]) - V0
+    off = np.cumsum(W * Hh) - W * Hh  # each pose's raster (its two boxes' union) in one canvas
+    lists = {}
+    for key, R, t, bx, polys in (("g", Rg, tg, bg, pg), ("e", Re, te, be, pe)):
+        px = [_footprint_pixels(polys[j], bx[j], int(U0[j]), int(V0[j]), int(W[j])) for j in range(n)]
+        cnt = np.array([len(q[0]) for q in px], np.int64)
+        ends = np.cumsum(cnt)
+        tot = int(ends[-1]) if n else 0
+        rays = np.empty((tot, 6), np.float32)
+        nrm = np.empty(tot)
+        dt = np.empty(tot)
+        cidx = np.empty(tot, np.int64)
+        for j, (ys, xs, fl) in enumerate(px):
+            a, b = int(ends[j] - cnt[j]), int(ends[j])
+            Kj = Ks[j]
+            v = ys + V0[j]
+            u = xs + U0[j]
+            y = (v - Kj[1, 2]) / Kj[1, 1]
+            x = (u - Kj[0, 2] - Kj[0, 1] * y) / Kj[0, 0]
+            Rj = R[j]
+            for i in range(3):  # R^T (x, y, 1): the rays in the model frame
+                rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
+            rays[a:b, :3] = (-Rj.T @ t[j]).astype(np.float32)
+            q = np.sqrt(x * x + y * y + 1.0)
+            nrm[a:b] = q
+            dt[a:b] = depth_test[image[j]][v, u] * q
+            cidx[a:b] = fl + off[j]
+        z = renderer.cast_rays(rays) * nrm
+        lists[key] = (cidx, z, dt, np.repeat(np.arange(n), cnt))
+    cg, dg, dtg, pgi = lists["g"]
+    ce, de, dte, pei = lists["e"]
+    total = int(off[-1] + W[-1] * Hh[-1])
+    vg = (dg > 0) & (((dg.astype(np.float32) - dtg.astype(np.float32)) <= delta) | (dtg == 0))
+    vg_c = np.zeros(total, bool)
+    vg_c[cg[vg]] = True
+    dg_c = np.zeros(total, np.float64)
+    dg_c[cg] = dg
+    vge = vg_c[ce]
+    hit = de > 0
+    ve = hit & ((((de.astype(np.float32) - dte.astype(np.float32)) <= delta) | (dte == 0)) | vge)
+    inter = ve & vge
+    n_vg = np.bincount(pgi[vg], minlength=n)
+    n_ve = np.bincount(pei[ve], minlength=n)
+    n_inter = np.bincount(pei[inter], minlength=n)
+    n_union = n_vg + n_ve - n_inter
+    dist = np.abs(dg_c[ce[inter]] - de[inter]) / diameter
+    k = np.searchsorted(taus, dist, side="right")  # the taus with dist >= tau: the first k
+    T = len(taus)
+    hist = np.bincount(pei[inter] * (T + 1) + k, minlength=n * (T + 1)).reshape(n, T + 1)
+    cost = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (n,T): #{dist >= tau_i}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = (cost + (n_union - n_inter)[:, None]) / n_union[:, None]
+    e[n_union == 0] = 1.0
+    return e
+
+
+# --- exact MSSD / MSPD by branch and bound ----------------------------------------------------
+@dataclass
+class TreeLevel:
+    rep: np.ndarray  # (n,) index (into the tree's points) of each node's representative point
+    r: np.ndarray  # (n,) largest distance from the representative to the node's points
+    child_start: np.ndarray  # (n,) first child in the next level
+    child_count: np.ndarray  # (n,)
+
+
+@dataclass
+class PointTree:
+    """Nested clusters of points (recursive median splits along the longest box side): level 0
+    has about ``first`` nodes, each next level splits every node into up to ``branching``
+    children, the last level holds single points (r = 0). A node's representative is its point
+    nearest to the node's centroid."""
+
+    pts: np.ndarray
+    levels: list
+    screen: np.ndarray = None  # (k,) indices of a few spread-out points (farthest-point order)
+
+
+def _spread_points(P: np.ndarray, k: int) -> np.ndarray:
+    """Indices of k points of P by farthest-point sampling, from the point farthest from the centroid."""
+    i = int(np.argmax(((P - P.mean(0)) ** 2).sum(1)))
+    out = [i]
+    d = ((P - P[i]) ** 2).sum(1)
+    for _ in range(min(k, len(P)) - 1):
+        i = int(np.argmax(d))
+        out.append(i)
+        d = np.minimum(d, ((P - P[i]) ** 2).sum(1))
+    return np.array(out, np.int64)
+
+
+def make_point_tree(P: np.ndarray, first: int = 32, branching: int = 2) -> PointTree:
+    P = _pts(P)
+    N = len(P)
+    order = np.arange(N)
+    cuts = np.array([0, N])
+    history = [cuts]
+    while True:
+        starts, sizes = cuts[:-1], np.diff(cuts)
+        split = sizes > 1
+        if not split.any():
+            break
+        seg = np.repeat(np.arange(len(sizes)), sizes)
+        X = P[order]
+        ext = np.maximum.reduceat(X, starts) - np.minimum.reduceat(X, starts)
+        key = X[np.arange(N), np.argmax(ext, axis=1)[seg]]
+        order = order[np.lexsort((key, seg))]
+        cuts = np.sort(np.concatenate([cuts, starts[split] + sizes[split] // 2]))
+        history.append(cuts)
+    D = len(history) - 1
+    step = max(1, int(round(np.log2(branching))))
+    d0 = min(D, max(0, int(np.ceil(np.log2(max(1, first))))))
+    depths = list(range(d0, D, step)) + [D]
+    X = P[order]
+    levels = []
+    for li, dep in enumerate(depths):
+        c = history[dep]
+        starts, sizes = c[:-1], np.diff(c)
+        seg = np.repeat(np.arange(len(sizes)), sizes)
+        cen = np.add.reduceat(X, starts) / sizes[:, None]
+        dc = ((X - cen[seg]) ** 2).sum(1)
+        srt = np.lexsort((dc, seg))
+        rep = order[srt[starts]]
+        r = np.sqrt(np.maximum.reduceat(((X - P[rep][seg]) ** 2).sum(1), starts))
+        if li + 1 < len(depths):
+            nxt = history[depths[li + 1]]
+            cs = np.searchsorted(nxt, starts)
+            cc = np.searchsorted(nxt, c[1:]) - cs
+        else:
+            cs = cc = np.zeros(len(starts), np.int64)
+        levels.append(TreeLevel(rep, r, cs, cc))
+    return PointTree(P, levels, _spread_points(P, 8))
+
+
+def _seg_starts(key: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, np.int64)
+
+
+def _minmax_bnb(tree: PointTree, B: int, screen, prep, items, cutoff: float, chunk: int, binof=None,
+                first: int = 3):
+    """min over symmetries s of max over the tree's points of a per-point error, per pose, by
+    branch and bound. ``screen(b0, b1) -> (lower (b,S), brute (b,))``: per (pose, symmetry) a lower
+    bound of its maximum (the error at a few actual points), and the poses left to the caller (nan);
+    ``prep(b, s)``: what ``items`` needs per (pose, symmetry) pair; ``items(prep, pair, p, r) ->
+    (v, gap)``: for (pair, node) items the error at the node's representative point p and a bound
+    of how much more it can be over the node (radius r).
+
+    Per pose an interval [lo, hi] of the error is kept (lo from values at actual points, hi from
+    the bounds). Level 0 is first evaluated for the ``first`` symmetries with the smallest screening
+    bounds (hi), then for every symmetry whose screening bound does not exceed that hi; a symmetry
+    whose lower bound exceeds the pose's hi cannot be the minimum, a node whose upper bound is
+    below its symmetry's lower bound cannot hold the maximum; the rest is refined level by level.
+    A pose stops when lo >= ``cutoff`` (the interval then only says so), when ``binof`` (a
+    function (values, pose indices) -> int bins, e.g. the number of thresholds passed) gives lo
+    and hi the same bin, or at the points (lo == hi: exact). Returns (lo (B,), hi (B,))."""
+    lo_out = np.full(B, np.nan)
+    hi_out = np.full(B, np.nan)
+    tol = _BNB_TOL
+    L0 = tree.levels[0]
+    M0 = len(L0.rep)
+
+    def settled(ids, lo, hi):
+        if binof is None:
+            return (hi <= lo) | (lo >= cutoff)
+        return (binof(lo, ids) == binof(hi, ids)) | (lo >= cutoff)
+
+    def level0(pb, ps):
+        """(prep, item values, item upper bounds) of pairs (pb, ps) over every level-0 node."""
+        pd = prep(b0 + pb, ps)
+        n = len(pb)
+        iv, ig = items(pd, np.repeat(np.arange(n), M0), np.tile(L0.rep, n), np.tile(L0.r, n))
+        return pd, iv, iv + ig
+
+    for b0 in range(0, B, chunk):
+        b1 = min(B, b0 + chunk)
+        nb = b1 - b0
+        Ls, brute = screen(b0, b1)
+        S = Ls.shape[1]
+        Plo = Ls.min(axis=1)
+        Phi = np.full(nb, np.inf)
+        cut_lo = np.where(Ls >= cutoff, Ls, np.inf).min(axis=1)
+        done = brute | (Plo >= cutoff)
+        # an upper bound from the most promising symmetries
+        q = min(first, S)
+        top = np.argpartition(Ls, q - 1, axis=1)[:, :q] if q < S else np.broadcast_to(np.arange(S), (nb, S))
+        m1 = np.zeros((nb, S), bool)
+        m1[np.arange(nb)[:, None], top] = True
+        m1 &= (Ls < cutoff) & ~done[:, None]
+        pb, ps = np.nonzero(m1)
+        if len(pb):
+            _, _, ihi = level0(pb, ps)
+            np.minimum.at(Phi, pb, ihi.reshape(len(pb), M0).max(axis=1))
+        open_ = ~done
+        done[open_] = settled(b0 + np.flatnonzero(open_), Plo[open_], Phi[open_])
+        # level 0 for every symmetry that can beat it
+        pb, ps = np.nonzero((Ls <= Phi[:, None] + tol) & (Ls < cutoff) & ~done[:, None])
+        n = len(pb)
+        plo = Ls[pb, ps].copy()
+        alive = np.ones(n, bool)
+        ipair = np.repeat(np.arange(n), M0)
+        inode = np.tile(np.arange(M0), n)
+        pdata = prep(b0 + pb, ps) if n else None
+        for li in range(len(tree.levels)):
+            if len(ipair) == 0:
+                break
+            L = tree.levels[li]
+            if li > 0:
+                prev = tree.levels[li - 1]
+                cs, cc = prev.child_start[inode], prev.child_count[inode]
+                ipair = np.repeat(ipair, cc)
+                inode = np.repeat(cs - (np.cumsum(cc) - cc), cc) + np.arange(int(cc.sum()))
+            iv, ig = items(pdata, ipair, L.rep[inode], L.r[inode])
+            ihi = iv + ig
+            st = _seg_starts(ipair)
+            up = ipair[st]
+            plo[up] = np.maximum(plo[up], np.maximum.reduceat(iv, st))
+            phi = np.full(n, np.inf)
+            phi[up] = np.maximum.reduceat(ihi, st)
+            has = np.zeros(n, bool)
+            has[up] = True
+            alive &= has
+            cut = alive & (plo >= cutoff)
+            if cut.any():
+                np.minimum.at(cut_lo, pb[cut], plo[cut])
+            live = np.flatnonzero(alive)
+            if len(live):  # per pose: the interval over its live symmetries
+                sb = _seg_starts(pb[live])
+                pose = pb[live][sb]
+                Phi[pose] = np.minimum(Phi[pose], np.minimum.reduceat(phi[live], sb))
+                Plo[pose] = np.maximum(Plo[pose], np.minimum(cut_lo[pose], np.minimum.reduceat(plo[live], sb)))
+            open_ = ~done
+            done[open_] = settled(b0 + np.flatnonzero(open_), Plo[open_], Phi[open_])
+            alive &= (plo <= Phi[pb] + tol) & (plo < cutoff) & ~done[pb]
+            k = alive[ipair] & (ihi >= plo[ipair] - tol)
+            ipair, inode = ipair[k], inode[k]
+        # poses still open have been refined to the points: the minimum over live symmetries is exact
+        best = np.full(nb, np.inf)
+        if alive.any():
+            np.minimum.at(best, pb[alive], plo[alive])
+        left = ~done
+        val = np.minimum(best, cut_lo)
+        Plo[left] = val[left]
+        Phi[left] = np.where(best[left] <= cut_lo[left], val[left], np.maximum(Phi[left], val[left]))
+        lo_out[b0:b1] = np.where(brute, np.nan, Plo)
+        hi_out[b0:b1] = np.where(brute, np.nan, np.maximum(Phi, Plo))
+    return lo_out, hi_out
+
+
+def _sym_images(model: "ModelPoints", tree: PointTree) -> np.ndarray:
+    """(S,k,3) the symmetric images R_s c + t_s of the tree's screening points (cached per tree)."""
+    key = id(tree)
+    cache = model.__dict__.setdefault("_sym_img", {})
+    if key not in cache:
+        R, t = model.syms
+        C = tree.pts[tree.screen]
+        cache[key] = np.einsum("sij,kj->ski", R, C) + t[:, None, :]
+    return cache[key]
+
+
+def _dense_chunk(S: int, M0: int) -> int:
+    return max(1, (1 << 20) // max(1, S * M0))
+
+
+def mssd_fast(model: "ModelPoints", R_est, t_est, R_gt, t_gt, cutoff: float = np.inf, binof=None) -> Bounds:
+    """MSSD of B poses of one object (mm): intervals [lo, hi] (B,) holding :func:`mssd`; exact
+    (lo == hi) by default. With ``cutoff`` a pose whose error is >= cutoff stops there (lo >=
+    cutoff); with ``binof`` (see :func:`_minmax_bnb`) a pose stops once lo and hi are in one bin
+    (decisions against thresholds are then exact at a fraction of the cost). The maximum of the convex
+    |D p + d| over the points is attained on their convex hull, so only hull vertices count. In
+    the ground truth's frame a point's error is |Q p + c - (R_s p + t_s)| (Q = R_g^T R_e,
+    c = R_g^T (t_e - t_g)); over a node of radius r around its representative it exceeds the
+    representative's by at most |Q - R_s|_2 r. Branch and bound over (symmetry, node) keeps only
+    the symmetries that can be the minimum and the nodes that can hold the maximum."""
+    Re, te = _poses(R_est, t_est)
+    Rg, tg = _poses(R_gt, t_gt)
+    B = len(Re)
+    if B == 0:
+        return Bounds(np.zeros(0), np.zeros(0), np.zeros(0))
+    tree = model.hull_tree
+    symR, symt = model.syms
+    Q = np.einsum("bji,bjk->bik", Rg, Re)
+    c = np.einsum("bji,bj->bi", Rg, te - tg)
+    C0 = tree.pts[tree.screen]
+    Y0 = _sym_images(model, tree)  # (S,k,3)
+    yy = (Y0 * Y0).sum(-1)  # (S,k)
+    YT = np.ascontiguousarray(Y0.transpose(1, 2, 0))  # (k,3,S)
+
+    def screen(b0, b1):
+        a = np.einsum("bij,kj->bki", Q[b0:b1], C0) + c[b0:b1, None, :]  # (b,k,3)
+        aa = (a * a).sum(-1)  # (b,k)
+        dot = np.matmul(a.transpose(1, 0, 2), YT).transpose(1, 2, 0)  # (b,S,k)
+        v2 = aa[:, None, :] + yy[None] - 2 * dot
+        slack = 1e-6 * np.sqrt(aa[:, None, :] + yy[None])  # rounding of the expansion
+        v = np.maximum(np.sqrt(np.maximum(v2, 0.0)) - slack, 0.0)
+        return v.max(axis=2), np.zeros(b1 - b0, bool)
+
+    def prep(b, s):  # per pair: [Q - R_s | c - t_s] and sigma = |Q - R_s|_2
+        W = np.concatenate([Q[b] - symR[s], (c[b] - symt[s])[:, :, None]], axis=2)
+        tr = np.einsum("nij,nij->n", Q[b], symR[s])
+        return W, np.sqrt(np.maximum(3.0 - tr, 0.0)) * (1 + 1e-9) + 1e-7
+
+    def items(pd, ip, p, r):
+        W, sig = pd
+        X = tree.pts[p]
+        E = np.einsum("nij,nj->ni", W[ip][:, :, :3], X) + W[ip][:, :, 3]
+        return np.sqrt((E * E).sum(1)), sig[ip] * r
+
+    lo, hi = _minmax_bnb(tree, B, screen, prep, items, cutoff, _dense_chunk(len(symR), 4 * len(C0)), binof)
+    return Bounds(lo, hi, np.where(hi > lo, 0.5 * (lo + hi), lo))
+
+
+def _region_bounds(model: "ModelPoints", Re, te, Rg, tg, K):
+    """Per pose: bounds L of |J pi| and H of the derivative of J pi (pixel per mm, per mm^2) over a
+    box holding the model in the estimated pose and every symmetric image of it in the ground-truth
+    pose, and that box's smallest depth."""
+    m = model.centre
+    rho = model.radius
+    ms, rs = model.sym_centre
+    ce = Re @ m + te
+    cg = Rg @ ms + tg
+    rg = rho + rs
+    zmin = np.minimum(ce[:, 2] - rho, cg[:, 2] - rg)
+    ax = np.maximum(np.abs(ce[:, 0]) + rho, np.abs(cg[:, 0]) + rg)
+    ay = np.maximum(np.abs(ce[:, 1]) + rho, np.abs(cg[:, 1]) + rg)
+    fx, fy, sk = np.abs(K[:, 0, 0]), np.abs(K[:, 1, 1]), np.abs(K[:, 0, 1])
+    z = np.where(zmin > 1.0, zmin, 1.0)
+    a = fx * ax + sk * ay
+    b = fy * ay
+    f2 = fx * fx + sk * sk + fy * fy
+    L = np.sqrt(f2 / z ** 2 + (a * a + b * b) / z ** 4)
+    H = np.sqrt(2 * f2 / z ** 4 + 4 * (a * a + b * b) / z ** 6)
+    return L * (1 + 1e-9), H * (1 + 1e-9), zmin
+
+
+def mspd_fast(model: "ModelPoints", R_est, t_est, R_gt, t_gt, K, cutoff: float = np.inf, binof=None) -> Bounds:
+    """MSPD of B poses of one object (px): intervals [lo, hi] holding :func:`mspd`, exact by
+    default; ``cutoff`` and ``binof`` as in :func:`mssd_fast`. With X = R_e p + t_e and
+    Y = R_g (R_s p + t_s) + t_g, the error f(p) = pi(X) - pi(Y) changes over a node of radius r by
+    at most r (L s + H (|X - Y| + s r)) at its representative, s = |R_e - R_g R_s|_2, L and H
+    bounding the projection's first and second derivatives where the posed model lies
+    (:func:`_region_bounds`); branch and bound as in :func:`mssd_fast`. Poses with a point at depth
+    <= 0 have error inf; poses whose region reaches within 1 mm of the camera plane are computed
+    point by point."""
+    Re, te = _poses(R_est, t_est)
+    Rg, tg = _poses(R_gt, t_gt)
+    Ks = np.ascontiguousarray(_Ks(K, len(Re)))
+    B = len(Re)
+    if B == 0:
+        return Bounds(np.zeros(0), np.zeros(0), np.zeros(0))
+    tree = model.pts_tree
+    symR, symt = model.syms
+    Q = np.einsum("bji,bjk->bik", Rg, Re)
+    C0 = tree.pts[tree.screen]
+    Y0 = _sym_images(model, tree)  # (S,k,3)
+    S, k = Y0.shape[:2]
+    Yf = np.ascontiguousarray(Y0.reshape(-1, 3).T)  # (3,S*k)
+    Lb, Hb, zmin = _region_bounds(model, Re, te, Rg, tg, Ks)
+    # an estimate with a model point at depth <= 0 (the minimum depth is at a hull vertex): inf
+    ze_min = (np.einsum("bj,nj->bn", Re[:, 2], model.pts[model.hull_idx]) + te[:, 2:3]).min(axis=1)
+    behind = ze_min <= 0
+
+    def proj(Hh):  # (b,3,n) homogeneous -> (b,2,n), inf at depth <= 0
+        z = Hh[:, 2:3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = Hh[:, :2] / z
+        return np.where(z > 0, uv, np.inf)
+
+    def screen(b0, b1):
+        sl = slice(b0, b1)
+        ue = proj(np.matmul(Ks[sl], np.matmul(Re[sl], C0.T) + te[sl, :, None]))  # (b,2,k)
+        ug = proj(np.matmul(np.matmul(Ks[sl], Rg[sl]), Yf) + np.einsum("bij,bj->bi", Ks[sl], tg[sl])[:, :, None])
+        ug = ug.reshape(b1 - b0, 2, S, k)
+        with np.errstate(invalid="ignore"):
+            dv = ue[:, :, None, :] - ug
+            v = np.sqrt((dv * dv).sum(1))  # (b,S,k)
+        v[~np.isfinite(v)] = np.inf
+        lo = np.maximum(v.max(axis=2) * (1 - 1e-9) - 1e-9, 0.0)
+        lo[behind[sl]] = np.inf
+        brute = (zmin[sl] <= 1.0) & ~behind[sl] & (lo.min(axis=1) < cutoff)
+        return lo, brute
+
+    def prep(b, s):  # per pair: rows K[R_e|t_e], K[R'|t'], [R_e - R'|t_e - t'] (R' = R_g R_s, t' = R_g t_s + t_g)
+        Rp = np.matmul(Rg[b], symR[s])
+        tp = np.einsum("nij,nj->ni", Rg[b], symt[s]) + tg[b]
+        Me = np.concatenate([Re[b], te[b, :, None]], axis=2)
+        Mg = np.concatenate([Rp, tp[:, :, None]], axis=2)
+        W = np.concatenate([np.matmul(Ks[b], Me), np.matmul(Ks[b], Mg), Me - Mg], axis=1)  # (n,9,4)
+        tr = np.einsum("nij,nij->n", Q[b], symR[s])
+        sig = np.sqrt(np.maximum(3.0 - tr, 0.0)) * (1 + 1e-9) + 1e-7  # |R_e - R_g R_s|_2
+        return np.ascontiguousarray(W), sig, Lb[b], Hb[b]
+
+    def items(pd, ip, p, r):
+        W, sig, Lp, Hp = pd
+        Wi = W[ip]
+        E = np.einsum("nij,nj->ni", Wi[:, :, :3], tree.pts[p]) + Wi[:, :, 3]  # (n,9)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            du = E[:, 0] / E[:, 2] - E[:, 3] / E[:, 5]
+            dv = E[:, 1] / E[:, 2] - E[:, 4] / E[:, 5]
+            v = np.sqrt(du * du + dv * dv)
+        v[(E[:, 2] <= 0) | (E[:, 5] <= 0) | ~np.isfinite(v)] = np.inf
+        D = np.sqrt((E[:, 6:] ** 2).sum(1))
+        sg = sig[ip]
+        return v, r * (Lp[ip] * sg + Hp[ip] * (D + sg * r)) + 1e-9 * np.where(np.isfinite(v), v, 0)
+
+    lo, hi = _minmax_bnb(tree, B, screen, prep, items, cutoff, _dense_chunk(S, 4 * k), binof)
+    for b in np.flatnonzero(np.isnan(lo)):  # near the camera plane: point by point
+        lo[b] = hi[b] = mspd(Re[b], te[b], Rg[b], tg[b], Ks[b], model.pts, model.syms)
+    lo[behind] = hi[behind] = np.inf
+    return Bounds(lo, hi, np.where(hi > lo, 0.5 * (lo + hi), lo))
+
+
+__all__ += [
+    "VSD_DELTA", "VSD_TAUS", "VSD_THRESHOLDS", "MSSD_THRESHOLDS", "MSPD_THRESHOLDS", "MSPD_WIDTH",
+    "MAX_SYM_DISC_STEP", "rotation_about", "symmetry_transformations", "project_points", "mssd", "mspd",
+    "ray_norms", "distance_image", "vsd_from_depths", "DepthRenderer", "vsd_batch", "TreeLevel", "PointTree",
+    "make_point_tree", "mssd_fast", "mspd_fast",
 ]

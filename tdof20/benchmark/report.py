@@ -3,9 +3,10 @@
 Layout as in the paper: one row per object (catalog name for ids 1-20; asymmetric objects marked
 ``*`` in text and **bold** in Markdown, since their ADD(S) is the stricter ADD), one column per
 method, then the mean over objects and the accuracy pooled over all targets. Table 1 is ADD(S)
-accuracy (< 10% of the diameter), Table 2 the 2D projection accuracy (< 5 px); with several
-methods the best value of each row is bold in Markdown. :func:`metrics_table` lists every metric
-of one method.
+accuracy (< 10% of the diameter), Table 2 the 2D projection accuracy (< 5 px), Table 3 the BOP
+average recall AR (the mean of AR_VSD, AR_MSSD and AR_MSPD); with several methods the best value
+of each row is bold in Markdown. :func:`metrics_table` lists every metric computed for one
+method, :func:`scenes_table` the same per scene. Tables of metrics not computed are left out.
 """
 
 from __future__ import annotations
@@ -15,15 +16,23 @@ from typing import Sequence
 
 import numpy as np
 
+from tdof20.benchmark import metrics as M
 from tdof20.benchmark.scoring import ADD_THRESHOLD, AUC_MAX, PROJ_THRESHOLD, Evaluation
 
 TABLES = {
     "add_s": f"Table 1 - ADD(S) accuracy (%): mean model-point distance < {ADD_THRESHOLD:.0%} of the diameter "
              f"(closest point for symmetric objects)",
     "proj2d": f"Table 2 - 2D projection accuracy (%): mean reprojection distance < {PROJ_THRESHOLD:g} px",
+    "ar": "Table 3 - BOP average recall AR (%): the mean of AR_VSD, AR_MSSD and AR_MSPD (BOP19)",
 }
 METRIC_LABELS = {"add": "ADD", "adds": "ADD-S", "add_s": "ADD(S)", "proj2d": "2D proj", "auc_adds": "AUC ADD-S",
-                 "auc_add_s": "AUC ADD(S)"}
+                 "auc_add_s": "AUC ADD(S)", "ar_vsd": "AR VSD", "ar_mssd": "AR MSSD", "ar_mspd": "AR MSPD",
+                 "ar": "AR"}
+
+
+def _keys(ev: Evaluation) -> list[str]:
+    """The metric keys computed for ``ev``, in report order."""
+    return [k for k in getattr(ev, "keys", ("n",) + tuple(METRIC_LABELS))[1:] if k in METRIC_LABELS]
 
 
 def object_name(obj_id: int) -> str:
@@ -82,7 +91,10 @@ def table_text(evals: Sequence[Evaluation], key: str = "add_s", title: str | Non
         if k == len(rows) - 2:
             out.append("-" * (w0 + sum(w + 2 for w in ws)))
         out.append(lab.ljust(w0) + "".join("  " + _pct(v).rjust(w) for v, w in zip(vals, ws)))
-    out.append("* asymmetric object: ADD(S) is ADD; the others are symmetric: ADD(S) is ADD-S")
+    if key in ("add_s", "proj2d"):
+        out.append("* asymmetric object: ADD(S) is ADD; the others are symmetric: ADD(S) is ADD-S")
+    else:
+        out.append("* asymmetric object (MSSD, MSPD: the symmetries of models_info.json, discretised as BOP does)")
     return "\n".join(out)
 
 
@@ -100,51 +112,72 @@ def table_markdown(evals: Sequence[Evaluation], key: str = "add_s", title: str |
                  for v in vals]
         lab = lab.strip()
         out.append(f"| {'**' + lab + '**' if asym else lab} | " + " | ".join(cells) + " |")
-    out += ["", "Bold objects are asymmetric (ADD(S) = ADD); the others are symmetric (ADD(S) = ADD-S)."]
+    out += ["", "Bold objects are asymmetric (ADD(S) = ADD); the others are symmetric (ADD(S) = ADD-S)."
+            if key in ("add_s", "proj2d") else "Bold objects are asymmetric."]
     return "\n".join(out)
 
 
-def metrics_table(ev: Evaluation, markdown: bool = False) -> str:
-    """Every metric of one method: objects, mean, all (percent; n = targets)."""
-    s = ev.summary()
-    keys = ["add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s"]
-    rows = [(f"{int(k):>2} {object_name(int(k))}", not ev.objects[int(k)].symmetric, v)
-            for k, v in s["objects"].items()]
-    rows.append((f"mean ({s['mean']['n']} objects)", False, s["mean"]))
-    rows.append(("all", False, s["all"]))
+def _table(title: str, first: str, rows: list, keys: list[str], markdown: bool) -> str:
+    """rows: [(label, bold/starred?, values dict, show n?)] -> a text or Markdown table (percent)."""
     heads = ["n"] + [METRIC_LABELS[k] for k in keys]
     if markdown:
-        out = [f"**{ev.method}: all metrics (%)**", "", "| object | " + " | ".join(heads) + " |",
-               "| --- |" + " ---: |" * len(heads)]
-        for lab, asym, v in rows:
+        out = [f"**{title}**", "", f"| {first} | " + " | ".join(heads) + " |", "| --- |" + " ---: |" * len(heads)]
+        for lab, asym, v, show_n in rows:
             lab = lab.strip()
-            n = str(v["n"]) if "mean" not in lab else "-"
+            n = str(v["n"]) if show_n else "-"
             out.append(f"| {'**' + lab + '**' if asym else lab} | {n} | " + " | ".join(_pct(v[k]) for k in keys) + " |")
         return "\n".join(out)
-    labels = [f"{lab} *" if asym else lab for lab, asym, _ in rows]
-    w0 = max(len(x) for x in labels + ["object"])
+    labels = [f"{lab} *" if asym else lab for lab, asym, _, _ in rows]
+    w0 = max(len(x) for x in labels + [first])
     ws = [max(6, len(h)) for h in heads]
-    out = [f"{ev.method}: all metrics (%)",
-           "object".ljust(w0) + "".join("  " + h.rjust(w) for h, w in zip(heads, ws))]
-    for lab, (_, _, v) in zip(labels, rows):
-        n = str(v["n"]) if not lab.startswith("mean") else "-"
+    out = [title, first.ljust(w0) + "".join("  " + h.rjust(w) for h, w in zip(heads, ws))]
+    for lab, (_, _, v, show_n) in zip(labels, rows):
+        n = str(v["n"]) if show_n else "-"
         out.append(lab.ljust(w0) + "  " + n.rjust(ws[0]) +
                    "".join("  " + _pct(v[k]).rjust(w) for k, w in zip(keys, ws[1:])))
     return "\n".join(out)
 
 
+def metrics_table(ev: Evaluation, markdown: bool = False) -> str:
+    """Every metric computed for one method: objects, mean, all (percent; n = targets)."""
+    s = ev.summary()
+    rows = [(f"{int(k):>2} {object_name(int(k))}", not ev.objects[int(k)].symmetric, v, True)
+            for k, v in s["objects"].items()]
+    rows.append((f"mean ({s['mean']['n']} objects)", False, s["mean"], False))
+    rows.append(("all", False, s["all"], True))
+    return _table(f"{ev.method}: all metrics (%)", "object", rows, _keys(ev), markdown)
+
+
+def scenes_table(ev: Evaluation, markdown: bool = False) -> str:
+    """Every metric computed for one method, per scene (pooled over the scene's targets), and all."""
+    s = ev.summary()
+    labels = getattr(ev, "scene_labels", {}) or {}
+    rows = [(f"{int(k):>2} {labels.get(int(k), '')}".rstrip(), False, v, True) for k, v in s["scenes"].items()]
+    rows.append(("all", False, s["all"], True))
+    return _table(f"{ev.method}: per scene (%)", "scene", rows, _keys(ev), markdown)
+
+
+def _main_tables(evals: Sequence[Evaluation]) -> list[str]:
+    have = set(_keys(evals[0])) if evals else set()
+    return [k for k in ("add_s", "proj2d", "ar") if k in have]
+
+
 def report_text(evals: Sequence[Evaluation]) -> str:
-    parts = [table_text(evals, "add_s"), "", table_text(evals, "proj2d")]
+    parts: list[str] = []
+    for k in _main_tables(evals):
+        parts += ([""] if parts else []) + [table_text(evals, k)]
     for ev in evals:
-        parts += ["", metrics_table(ev)]
-    return "\n".join(parts)
+        parts += ["", metrics_table(ev), "", scenes_table(ev)]
+    return "\n".join(parts).lstrip("\n")
 
 
 def report_markdown(evals: Sequence[Evaluation]) -> str:
-    parts = [table_markdown(evals, "add_s"), "", table_markdown(evals, "proj2d")]
+    parts: list[str] = []
+    for k in _main_tables(evals):
+        parts += ([""] if parts else []) + [table_markdown(evals, k)]
     for ev in evals:
-        parts += ["", metrics_table(ev, markdown=True)]
-    return "\n".join(parts) + "\n"
+        parts += ["", metrics_table(ev, markdown=True), "", scenes_table(ev, markdown=True)]
+    return "\n".join(parts).lstrip("\n") + "\n"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -161,7 +194,8 @@ def accuracy_curve(errors: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
 def write_plots(evals: Sequence[Evaluation], out_dir: str | Path) -> list[Path]:
     """Accuracy against threshold, one line per method, pooled over all targets:
     ADD(S) against % of the diameter (0-100), ADD-S against mm (0-100: the area under it is the
-    AUC), 2D projection against px (0-20). PNG files in ``out_dir``; returns their paths."""
+    AUC), 2D projection against px (0-20), and the BOP recalls at their thresholds
+    (``recall_bop.png``), each where computed. PNG files in ``out_dir``; returns their paths."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -172,16 +206,45 @@ def write_plots(evals: Sequence[Evaluation], out_dir: str | Path) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = method_names(evals)
-    specs = [
-        ("accuracy_add_s.png", "ADD(S) accuracy", "threshold (% of the object diameter)", np.linspace(0, 100, 401),
-         lambda o: 100 * o.add_s / o.diameter, 100 * ADD_THRESHOLD),
-        ("accuracy_adds_mm.png", "ADD-S accuracy (area = AUC)", "threshold (mm)", np.linspace(0, AUC_MAX, 401),
-         lambda o: o.adds, None),
-        ("accuracy_proj2d.png", "2D projection accuracy", "threshold (px)", np.linspace(0, 20, 401),
-         lambda o: o.proj, PROJ_THRESHOLD),
-    ]
+    have = set(_keys(evals[0])) if evals else set()
+    specs = []
+    if "add_s" in have:
+        specs += [
+            ("accuracy_add_s.png", "ADD(S) accuracy", "threshold (% of the object diameter)", np.linspace(0, 100, 401),
+             lambda o: 100 * o.add_s / o.diameter, 100 * ADD_THRESHOLD),
+            ("accuracy_adds_mm.png", "ADD-S accuracy (area = AUC)", "threshold (mm)", np.linspace(0, AUC_MAX, 401),
+             lambda o: o.adds, None)]
+    if "proj2d" in have:
+        specs.append(("accuracy_proj2d.png", "2D projection accuracy", "threshold (px)", np.linspace(0, 20, 401),
+                      lambda o: o.proj, PROJ_THRESHOLD))
     paths = []
     import io
+
+    bop = [k for k in ("vsd", "mssd", "mspd") if f"ar_{k}" in have]
+    if bop:  # recall at each BOP threshold (VSD: averaged over the taus), pooled over all targets
+        xs = {"vsd": M.VSD_THRESHOLDS, "mssd": M.MSSD_THRESHOLDS, "mspd": M.MSPD_THRESHOLDS}
+        xl = {"vsd": "VSD threshold (recall averaged over the 10 taus)",
+              "mssd": "MSSD threshold (fraction of the diameter)",
+              "mspd": "MSPD threshold (px at width 640)"}
+        fig, axes = plt.subplots(1, len(bop), figsize=(4.2 * len(bop), 3.6), dpi=110, squeeze=False)
+        for ax, k in zip(axes[0], bop):
+            for ev, name in zip(evals, names):
+                oks = [o.bop[k].reshape(len(o.bop[k]), -1, len(xs[k])) for o in ev.objects.values() if k in o.bop]
+                ok = np.concatenate(oks) if oks else np.zeros((0, 1, len(xs[k])), bool)
+                rec = ok.mean(axis=(0, 1)) if len(ok) else np.zeros(len(xs[k]))
+                ax.plot(xs[k], 100 * rec, marker="o", ms=3, label=f"{name} (AR {100 * rec.mean():.1f})")
+            ax.set_ylim(0, 100)
+            ax.set_xlabel(xl[k])
+            ax.set_ylabel("recall (%)")
+            ax.set_title(f"{k.upper()} recall (mean = AR_{k.upper()})")
+            ax.grid(alpha=0.3)
+            ax.legend(loc="lower right", fontsize=8)
+        buf = io.BytesIO()
+        fig.tight_layout()
+        fig.savefig(buf, format="png")
+        plt.close(fig)
+        atomic_write_bytes(out / "recall_bop.png", buf.getvalue())
+        paths.append(out / "recall_bop.png")
 
     for fname, title, xlabel, x, err, mark in specs:
         fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=110)
@@ -206,5 +269,5 @@ def write_plots(evals: Sequence[Evaluation], out_dir: str | Path) -> list[Path]:
     return paths
 
 
-__all__ = ["object_name", "method_names", "table_text", "table_markdown", "metrics_table", "report_text",
-           "report_markdown", "accuracy_curve", "write_plots"]
+__all__ = ["object_name", "method_names", "table_text", "table_markdown", "metrics_table", "scenes_table",
+           "report_text", "report_markdown", "accuracy_curve", "write_plots"]

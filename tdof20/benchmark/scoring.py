@@ -10,6 +10,16 @@ over objects ("mean") and pooled over targets ("all")::
     proj2d     2D projection accuracy, mean reprojection distance < 5 px
     auc_adds   AUC of ADD-S over 0-100 mm: mean over targets of max(0, 1 - e / 100 mm)
     auc_add_s  the same for ADD(S)
+    ar_vsd     BOP19 average recall of VSD (10 taus 0.05-0.5 x 10 thresholds 0.05-0.5, delta 15 mm)
+    ar_mssd    BOP19 average recall of MSSD (thresholds 0.05-0.5 of the diameter)
+    ar_mspd    BOP19 average recall of MSPD (thresholds 5-50 px, errors scaled by 640 / image width)
+    ar         (ar_vsd + ar_mssd + ar_mspd) / 3
+
+and "scenes": the same pooled per scene. Which keys appear follows ``metrics``
+(:func:`resolve_metrics`): by default all but VSD and AR, and those two when every test image has
+a depth image. The BOP metrics are matched as BOP19 does (:func:`_bop_matches`): per target the
+top ``inst_count`` estimates, greedily by score, each take the unmatched one of the
+``inst_count`` most visible ground-truth instances with the smallest error below the threshold.
 
 Conventions (BOP): per (scene, image, object) the top-scored ``inst_count`` estimates count
 (ties: the earlier row); a target without an estimate is a failure (error inf); estimates that
@@ -54,6 +64,11 @@ AUC_MAX = 100.0  # mm
 AUC_SE_TARGET = 1.25e-4  # standard error of each object's ADD-S AUC
 VISIB_MIN = 0.1  # BOP: ground-truth instances less visible are no targets
 KEYS = ("n", "add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s")
+BOP_KEYS = ("ar_vsd", "ar_mssd", "ar_mspd", "ar")
+METRICS = ("add", "proj", "vsd", "mssd", "mspd", "ar")  # what --metrics selects
+METRIC_KEYS = {"add": ("add", "adds", "add_s", "auc_adds", "auc_add_s"), "proj": ("proj2d",), "vsd": ("ar_vsd",),
+               "mssd": ("ar_mssd",), "mspd": ("ar_mspd",), "ar": ("ar",)}
+ALL_KEYS = KEYS + BOP_KEYS
 SPLITS = ("simple", "hard")
 THREADS = min(2, os.cpu_count() or 1)  # objects scored in parallel
 
@@ -68,6 +83,7 @@ class SceneData:
     K: dict[int, np.ndarray]
     gt: dict[int, list[tuple[int, np.ndarray, np.ndarray]]]  # im_id -> [(obj_id, R, t)]
     t_all: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # every instance's t
+    depth_scale: dict[int, Any] = field(default_factory=dict)  # im_id -> mm per depth unit (as written; 1.0 if absent)
 
     def count(self, im_id: int, obj_id: int) -> int:
         return sum(1 for o, _, _ in self.gt.get(im_id, ()) if o == obj_id)
@@ -136,12 +152,13 @@ def _scene_data(scene_dir: Path) -> SceneData:
         if bad.any():
             raise TdofError(f"{what(int(np.argmax(bad)))}: cam_R_m2c is not a rotation matrix", gpath)
     Kd = dict(zip(cim, Ks))
+    scales = {i: cam[k].get("depth_scale", 1.0) for i, k in zip(cim, cam)}  # checked when a depth is read
     gtd: dict[int, list] = {int(k): [] for k in gt}
     for j, (i, _) in enumerate(where):
         if i not in Kd:
             raise TdofError(f"image {i} has ground truth but no camera entry", gpath)
         gtd[i].append((objs[j], R[j], t[j]))
-    return SceneData(Kd, gtd, t)
+    return SceneData(Kd, gtd, t, scales)
 
 
 class DatasetView:
@@ -180,8 +197,90 @@ class DatasetView:
             e = self.models_info[obj_id]
             sym = bool(e.get("symmetries_continuous")) or bool(e.get("symmetries_discrete"))
             pts = read_model_mesh(model_path(self.models_dir, obj_id), need_faces=False)[0]
-            self.models[obj_id] = M.ModelPoints(pts, float(e["diameter"]), sym)
+            try:
+                sR, st = M.symmetry_transformations(e)
+            except (KeyError, TypeError, ValueError):
+                raise TdofError(f"object {obj_id}: malformed symmetries (BOP form: symmetries_discrete as 4x4 "
+                                "matrices of 16 numbers, symmetries_continuous as {\"axis\", \"offset\"})",
+                                self.models_dir / MODELS_INFO) from None
+            self.models[obj_id] = M.ModelPoints(pts, float(e["diameter"]), sym, sym_R=sR, sym_t=st)
         return self.models[obj_id]
+
+    def mesh_path(self, obj_id: int) -> Path | None:
+        """The triangle mesh VSD renders: models_eval/ when its model has faces (BOP renders the
+        evaluation models), else models/; None when neither has one."""
+        key = ("mesh", obj_id)
+        if key not in self._extra:
+            found = None
+            for d in dict.fromkeys([self.models_dir, self.root / "models"]):
+                p = model_path(d, obj_id)
+                if p.exists() and len(read_model_mesh(p, need_faces=False)[1]):
+                    found = p
+                    break
+            self._extra[key] = found
+        return self._extra[key]
+
+    def renderer(self, obj_id: int) -> M.DepthRenderer:
+        key = ("renderer", obj_id)
+        if key not in self._extra:
+            p = self.mesh_path(obj_id)
+            if p is None:
+                raise TdofError(f"object {obj_id} has no triangle mesh to render for VSD", self.models_dir)
+            self._extra[key] = M.DepthRenderer(*read_model_mesh(p))
+        return self._extra[key]
+
+    def depth_path(self, scene_id: int, im_id: int) -> Path:
+        return self.root / "scenes" / f"{scene_id:06d}" / "depth" / f"{im_id:06d}.png"
+
+    def depth_mm(self, scene_id: int, im_id: int) -> np.ndarray:
+        """(H,W) float32 depth in mm of a test image (depth/ PNG x depth_scale; 0 = no depth)."""
+        from tdof20.formats.io import read_png
+
+        sc = self.scene(scene_id).depth_scale.get(im_id, 1.0)
+        if isinstance(sc, bool) or not isinstance(sc, (int, float)) or not sc > 0:
+            raise TdofError(f"image {im_id}: depth_scale must be a number > 0, got {sc!r}",
+                            self.root / "scenes" / f"{scene_id:06d}" / "scene_camera.json")
+        d = read_png(self.depth_path(scene_id, im_id), kind="depth")
+        return d.astype(np.float32) * np.float32(sc)
+
+    def image_width(self, scene_id: int) -> int:
+        """Image width in pixels (MSPD scales by 640 / width): ROOT/camera.json's ``width``, else
+        the header of the scene's first rgb/ or depth/ PNG."""
+        key = ("width", scene_id)
+        if key not in self._extra:
+            from tdof20.formats.io import png_header
+
+            w = None
+            cam = self.root / "camera.json"
+            if cam.exists():
+                c = read_json(cam)
+                if isinstance(c, dict) and isinstance(c.get("width"), int) and c["width"] > 0:
+                    w = int(c["width"])
+            if w is None:
+                sd = self.root / "scenes" / f"{scene_id:06d}"
+                for sub in ("rgb", "depth"):
+                    pngs = sorted((sd / sub).glob("*.png")) if (sd / sub).is_dir() else []
+                    if pngs:
+                        w = png_header(pngs[0])[1]
+                        break
+            if w is None:
+                raise TdofError(f"MSPD needs the image width: camera.json has no 'width' and scene {scene_id} has no "
+                                "rgb/ or depth/ images", self.root)
+            self._extra[key] = w
+        return self._extra[key]
+
+    def bop_instances(self, scene_id: int, im_id: int, obj_id: int,
+                      count: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """[(gt_id, R, t)] the ground-truth instances BOP19 matches a target of ``count`` instances
+        against: the ``count`` instances of the object with the largest visib_fract
+        (scene_gt_info.json; ties and a missing file: in scene_gt.json order)."""
+        gts = self.scene(scene_id).gt[im_id]
+        vis = self.visib(scene_id)
+        fr = vis.get(im_id) if vis is not None else None
+        if fr is None or len(fr) != len(gts):
+            fr = [1.0] * len(gts)
+        ids = sorted((g for g in range(len(gts)) if gts[g][0] == obj_id), key=lambda g: -fr[g])
+        return [(g, gts[g][1], gts[g][2]) for g in ids[:count]]
 
     @property
     def obj_ids(self) -> set[int]:
@@ -320,7 +419,9 @@ def require_targets(tg: Targets, ds: DatasetView, split: str | None) -> None:
 class ObjectEval:
     """Per object: one entry per target instance (a target with inst_count k gives k entries).
     Errors are inf where there was no estimate. ``adds`` values are exact where ``adds_exact``
-    and control-variate estimates elsewhere; the *_ok decisions are always exact."""
+    and control-variate estimates elsewhere; the *_ok decisions are always exact. ``bop`` holds,
+    per BOP metric computed, whether each instance is matched (BOP19 matching) at each threshold:
+    'mssd' and 'mspd' (n,10), 'vsd' (n,10,10) (tau, threshold); ``scene`` each instance's scene."""
 
     obj_id: int
     diameter: float
@@ -334,6 +435,9 @@ class ObjectEval:
     adds_exact: np.ndarray
     auc_se: float = 0.0
     stages: dict = field(default_factory=dict)
+    scene: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    bop: dict = field(default_factory=dict)
+    keys: tuple = KEYS
 
     @property
     def n(self) -> int:
@@ -347,15 +451,36 @@ class ObjectEval:
     def add_s_ok(self) -> np.ndarray:
         return self.adds_ok if self.symmetric else self.add_ok
 
-    def summary(self) -> dict[str, float]:
+    def values(self, mask: np.ndarray | None = None) -> dict[str, float]:
+        """The summary values of the instances in ``mask`` (all by default)."""
+        sel = slice(None) if mask is None else mask
+
         def auc(e):
+            e = e[sel]
             return float(np.mean(np.maximum(0.0, 1.0 - e / AUC_MAX))) if len(e) else 0.0
 
         def acc(ok):
+            ok = ok[sel]
             return float(np.mean(ok)) if len(ok) else 0.0
 
-        return {"n": self.n, "add": acc(self.add_ok), "adds": acc(self.adds_ok), "add_s": acc(self.add_s_ok),
-                "proj2d": acc(self.proj_ok), "auc_adds": auc(self.adds), "auc_add_s": auc(self.add_s)}
+        def ar(name):
+            ok = self.bop[name][sel]
+            return float(ok.mean()) if ok.size else 0.0
+
+        get = {"add": lambda: acc(self.add_ok), "adds": lambda: acc(self.adds_ok), "add_s": lambda: acc(self.add_s_ok),
+               "proj2d": lambda: acc(self.proj_ok), "auc_adds": lambda: auc(self.adds),
+               "auc_add_s": lambda: auc(self.add_s), "ar_vsd": lambda: ar("vsd"), "ar_mssd": lambda: ar("mssd"),
+               "ar_mspd": lambda: ar("mspd")}
+        out: dict[str, float] = {"n": int(np.count_nonzero(np.ones(self.n, bool)[sel]))}
+        for k in self.keys[1:]:
+            if k == "ar":
+                out[k] = (ar("vsd") + ar("mssd") + ar("mspd")) / 3.0
+            else:
+                out[k] = get[k]()
+        return out
+
+    def summary(self) -> dict[str, float]:
+        return self.values()
 
 
 @dataclass
@@ -365,16 +490,28 @@ class Evaluation:
     warnings: list[str]
     timings: dict[str, float]
     n_rows: int = 0
+    keys: tuple = KEYS  # "n" and the metric keys computed, in report order
+    scene_labels: dict = field(default_factory=dict)  # scene id -> its name ("multi/08")
 
     def summary(self) -> dict[str, Any]:
+        """{"objects": {"<obj_id>": {...}}, "mean": {...} (over objects), "all": {...} (pooled over
+        target instances), "scenes": {"<scene_id>": {...}} (pooled over each scene's instances)}."""
+        keys = self.keys
         objs = {str(k): v.summary() for k, v in sorted(self.objects.items())}
         per = [v for v in objs.values() if v["n"] > 0]
-        mean = {k: (float(np.mean([o[k] for o in per])) if per else 0.0) for k in KEYS[1:]}
+        mean = {k: (float(np.mean([o[k] for o in per])) if per else 0.0) for k in keys[1:]}
         mean = {"n": len(per), **mean}
         allv: dict[str, Any] = {"n": int(sum(o["n"] for o in per))}
-        for k in KEYS[1:]:
+        for k in keys[1:]:
             allv[k] = float(sum(o[k] * o["n"] for o in per) / allv["n"]) if allv["n"] else 0.0
-        out = {"objects": objs, "mean": mean, "all": allv}
+        scenes = {}
+        ids = sorted({int(x) for o in self.objects.values() for x in np.unique(o.scene)})
+        for sid in ids:
+            parts = [o.values(o.scene == sid) for o in self.objects.values()]
+            parts = [p for p in parts if p["n"] > 0]
+            n = sum(p["n"] for p in parts)
+            scenes[str(sid)] = {"n": n, **{k: float(sum(p[k] * p["n"] for p in parts) / n) for k in keys[1:]}}
+        out = {"objects": objs, "mean": mean, "all": allv, "scenes": scenes}
         return _rounded(out)
 
 
@@ -486,7 +623,18 @@ def _adds_values(model: M.ModelPoints, A: np.ndarray, b: np.ndarray, thr: float,
 
 
 def _evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: list, n_missing: int,
-                     ) -> ObjectEval:
+                     do_add: bool = True, do_proj: bool = True) -> ObjectEval:
+    if not (do_add and do_proj):  # what is not asked for is not computed (nan; not reported)
+        full = _evaluate_object(model, obj_id, single, multi, n_missing) if (do_add or do_proj) else None
+        n = len(single["Re"]) + sum(g["count"] for g in multi) + n_missing
+        nan, no = np.full(n, np.nan), np.zeros(n, bool)
+        if full is None:
+            return ObjectEval(obj_id, model.diameter, model.symmetric, nan, nan, nan, no, no, no, no)
+        if not do_add:
+            full.add, full.adds, full.add_ok, full.adds_ok = nan, nan, no, no
+        if not do_proj:
+            full.proj, full.proj_ok = nan, no
+        return full
     thr = ADD_THRESHOLD * model.diameter
     Re, te, Rg, tg, K = (single[k] for k in ("Re", "te", "Rg", "tg", "K"))
     tic = _time.perf_counter()
@@ -551,15 +699,70 @@ def _evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: lis
                       np.concatenate(proj_okl), np.concatenate(exl), se, stages)
 
 
+def parse_metrics(spec: str | Any | None) -> tuple[str, ...] | None:
+    """``"add,proj,vsd"`` (or a list of names) -> the names, checked; None stays None (the default)."""
+    if spec is None:
+        return None
+    names = [x.strip().lower() for x in (spec.split(",") if isinstance(spec, str) else spec)]
+    names = [x for x in names if x]
+    bad = [x for x in names if x not in METRICS]
+    if bad or not names:
+        what = f"unknown metric {bad[0]!r}" if bad else "no metric given"
+        raise TdofError(f"--metrics: {what} (choose from {', '.join(METRICS)}, comma-separated)")
+    return tuple(dict.fromkeys(names))
+
+
+def vsd_unavailable(ds: DatasetView, tg: Targets) -> str | None:
+    """Why VSD cannot be computed on these targets (None when it can): every target image needs
+    its depth/ PNG and every target object a triangle mesh."""
+    for s, im in sorted(set(zip(tg.scene_id.tolist(), tg.im_id.tolist()))):
+        p = ds.depth_path(s, im)
+        if not p.exists():
+            return f"{p} is missing (VSD needs the depth image of every test image)"
+    for ob in sorted(set(tg.obj_id.tolist())):
+        if ds.mesh_path(ob) is None:
+            return f"object {ob} has no triangle mesh in models_eval/ or models/ to render"
+    return None
+
+
+def resolve_metrics(metrics: Any, ds: DatasetView, tg: Targets) -> tuple[tuple[str, ...], list[str]]:
+    """(the summary keys to compute, notes). Default: ADD(-S), 2D projection, MSSD, MSPD, and VSD
+    and AR when the dataset has depth for every test image (else a one-line note says why not).
+    Asking for ``vsd`` or ``ar`` on a dataset without depth is an error naming what is missing."""
+    names = parse_metrics(metrics)
+    notes: list[str] = []
+    if names is None:
+        want = {"add", "proj", "mssd", "mspd"}
+        why = vsd_unavailable(ds, tg) if len(tg) else None
+        if why is None:
+            want |= {"vsd", "ar"}
+        else:
+            notes.append(f"VSD not computed: {why}; AR (the mean of VSD, MSSD and MSPD) not reported either")
+    else:
+        want = set(names)
+        if "ar" in want:
+            want |= {"vsd", "mssd", "mspd"}
+        if "vsd" in want and len(tg):
+            why = vsd_unavailable(ds, tg)
+            if why is not None:
+                raise TdofError(f"--metrics {','.join(names)}: VSD cannot be computed: {why}")
+    keys = ("n",) + tuple(k for k in ALL_KEYS[1:] if any(k in METRIC_KEYS[m] for m in want))
+    return keys, notes
+
+
 def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
-             targets: str | Path | None = None, dataset: DatasetView | None = None) -> Evaluation:
-    """Everything :func:`score` computes, with the per-target errors (for reports and plots)."""
+             targets: str | Path | None = None, dataset: DatasetView | None = None,
+             metrics: Any = None) -> Evaluation:
+    """Everything :func:`score` computes, with the per-target errors (for reports and plots).
+    ``metrics``: None (the default set, see :func:`resolve_metrics`) or names from
+    :data:`METRICS` ("add,proj,vsd,mssd,mspd,ar" or a list)."""
     timings: dict[str, float] = {}
     t0 = _time.perf_counter()
     ds = dataset if dataset is not None else DatasetView(dataset_root)
     tpath = targets_path(ds.root, split, targets)
     tg = load_targets(tpath, ds)
     require_targets(tg, ds, split)
+    keys, notes = resolve_metrics(metrics, ds, tg)
     res = _as_results(results)
     timings["read"] = _time.perf_counter() - t0
 
@@ -568,28 +771,33 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
         if len(tg) else np.zeros(0)
     check_against_dataset(res, ds.scene_ids, lambda s: set(ds.scene(s).K), ds.obj_ids,
                           float(np.median(dists)) if len(dists) else None)
-    warnings = list(res.warnings)
+    warnings = list(res.warnings) + notes
+    do_bop = any(k in keys for k in BOP_KEYS)
 
-    # matching
+    # matching (ADD, ADD-S, 2D projection); per object the instances are ordered singles, multis, missing
     groups = _group_rows(res)
     per_obj: dict[int, dict] = {}
+    where: list[tuple] = []  # per target: (obj, kind, index within kind, scene, im, count, rows)
     used = 0
     for s, im, ob, cnt in zip(tg.scene_id.tolist(), tg.im_id.tolist(), tg.obj_id.tolist(), tg.inst_count.tolist()):
-        po = per_obj.setdefault(ob, {"single": [], "multi": [], "missing": 0})
+        po = per_obj.setdefault(ob, {"single": [], "multi": [], "missing": 0, "missing_scenes": []})
         scene = ds.scene(s)
         gts = [(R, t) for o, R, t in scene.gt[im] if o == ob]
         rows = groups.get((s, im, ob))
         if rows is None:
             po["missing"] += cnt
+            po["missing_scenes"] += [s] * cnt
             continue
         used += len(rows)
         if cnt == 1 and len(gts) == 1:
-            po["single"].append((int(rows[0]), gts[0][0], gts[0][1], scene.K[im]))
+            where.append((ob, 0, len(po["single"]), s, im, cnt, rows[:cnt]))
+            po["single"].append((int(rows[0]), gts[0][0], gts[0][1], scene.K[im], s))
         else:
+            where.append((ob, 1, len(po["multi"]), s, im, cnt, rows[:cnt]))
             gts = ds.valid_instances(s, im, ob, cnt)
             top = rows[:cnt]
             po["multi"].append({"ests": [(res.R[r], res.t[r]) for r in top], "gts": gts, "K": scene.K[im],
-                                "count": cnt})
+                                "count": cnt, "scene": s})
     n_ignored = len(res) - used
     n_missing = sum(p["missing"] for p in per_obj.values())
     if n_missing:
@@ -597,6 +805,8 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     if n_ignored:
         warnings.append(f"{n_ignored} row(s) match no target of {tpath.name} (ignored)")
     timings["match"] = _time.perf_counter() - t0 - timings["read"]
+    do_add = any(k in keys for k in METRIC_KEYS["add"])
+    do_proj = "proj2d" in keys
 
     def job(ob: int) -> ObjectEval:
         po = per_obj[ob]
@@ -607,7 +817,11 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
                   "Rg": np.array([x[1] for x in sg]).reshape(-1, 3, 3),
                   "tg": np.array([x[2] for x in sg]).reshape(-1, 3),
                   "K": np.array([x[3] for x in sg]).reshape(-1, 3, 3)}
-        return _evaluate_object(model, ob, single, po["multi"], po["missing"])
+        ev = _evaluate_object(model, ob, single, po["multi"], po["missing"], do_add, do_proj)
+        ev.scene = np.array([x[4] for x in sg] + [g["scene"] for g in po["multi"] for _ in range(g["count"])]
+                            + po["missing_scenes"], dtype=np.int64)
+        ev.keys = keys
+        return ev
 
     # objects in parallel threads (numpy and the KD-tree release the GIL); largest first
     order = sorted(per_obj, key=lambda o: -len(per_obj[o]["single"]))
@@ -615,42 +829,227 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
         done = dict(zip(order, pool.map(job, order)))
     objects = {ob: done[ob] for ob in sorted(done)}
     timings["metrics"] = _time.perf_counter() - t0 - timings["read"] - timings["match"]
+    if do_bop:
+        tic = _time.perf_counter()
+        slots = {}
+        for ob, po in per_obj.items():
+            n1 = len(po["single"])
+            starts = np.cumsum([0] + [g["count"] for g in po["multi"]])
+            slots[ob] = (n1, starts)
+        recs = []
+        for ob, kind, k, s, im, cnt, rows in where:
+            n1, starts = slots[ob]
+            recs.append((ob, s, im, cnt, rows, k if kind == 0 else n1 + int(starts[k])))
+        bop = _bop_matches(recs, res, ds, keys, {ob: o.n for ob, o in objects.items()}, timings)
+        for ob, o in objects.items():
+            o.bop = bop[ob]
+        timings["bop"] = _time.perf_counter() - tic
     timings["total"] = _time.perf_counter() - t0
-    return Evaluation(res.name, objects, warnings, timings, len(res))
+    labels = {int(sid): ds.scene_label(int(sid)) for sid in np.unique(tg.scene_id)}
+    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels)
+
+
+# ---------------------------------------------------------------------------------------------
+# BOP19: VSD, MSSD, MSPD errors and their matching
+# ---------------------------------------------------------------------------------------------
+def _greedy_count(E: np.ndarray, th: float) -> int:
+    """BOP19 matching of one (image, object): the estimates (rows of E, by decreasing score) each
+    take the unmatched ground-truth instance (column) with the smallest error below ``th``
+    (strict; ties: the first). Returns the number matched."""
+    taken = np.zeros(E.shape[1], bool)
+    m = 0
+    for row in E:
+        cand = ~taken & (row < th)
+        if cand.any():
+            taken[int(np.argmin(np.where(cand, row, np.inf)))] = True
+            m += 1
+    return m
+
+
+def _bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: dict, timings: dict) -> dict:
+    """Per object {"vsd": (n,10,10), "mssd": (n,10), "mspd": (n,10)} bool: instance matched at
+    each (tau and) threshold. ``recs``: per target with estimates (obj, scene, im, count, its top
+    ``count`` rows, first instance slot)."""
+    want = {m for m in ("vsd", "mssd", "mspd") if ("ar_" + m) in keys or "ar" in keys}
+    nT = len(M.MSSD_THRESHOLDS)
+    out = {ob: {"vsd": np.zeros((n, len(M.VSD_TAUS), len(M.VSD_THRESHOLDS)), bool) if "vsd" in want else None,
+                "mssd": np.zeros((n, nT), bool) if "mssd" in want else None,
+                "mspd": np.zeros((n, len(M.MSPD_THRESHOLDS)), bool) if "mspd" in want else None}
+           for ob, n in sizes.items()}
+    for ob in out:
+        out[ob] = {k: v for k, v in out[ob].items() if v is not None}
+    # every (estimate, valid ground truth) pair of every target
+    p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, p_exact = [], [], [], [], [], [], [], []
+    blocks = []  # per target: (obj, first pair, n_est, n_gt, slot)
+    for ob, s, im, cnt, rows, slot in recs:
+        gts = ds.bop_instances(s, im, ob, cnt)
+        K = ds.scene(s).K[im]
+        blocks.append((ob, len(p_obj), len(rows), len(gts), slot, cnt))
+        for r in rows:
+            for _, R, t in gts:
+                p_obj.append(ob)
+                p_scene.append(s)
+                p_im.append(im)
+                p_row.append(int(r))
+                p_R.append(R)
+                p_t.append(t)
+                p_K.append(K)
+                p_exact.append(cnt > 1 or len(gts) > 1)
+    n = len(p_obj)
+    if n == 0:
+        return out
+    p_obj, p_scene, p_im, p_row = (np.asarray(x, np.int64) for x in (p_obj, p_scene, p_im, p_row))
+    p_R, p_t, p_K = np.asarray(p_R).reshape(-1, 3, 3), np.asarray(p_t).reshape(-1, 3), np.asarray(p_K).reshape(-1, 3, 3)
+    p_exact = np.asarray(p_exact, bool)
+    errs: dict[str, np.ndarray] = {}
+    # MSSD and MSPD per object: exact values where several instances are matched, elsewhere
+    # intervals narrowed until they lie in one threshold bin (the decisions are then exact)
+    mssd_e = np.full(n, np.inf)
+    mspd_e = np.full(n, np.inf)
+
+    def job(ob: int) -> None:
+        idx = np.flatnonzero(p_obj == ob)
+        model = ds.model(ob)
+        Re, te = res.R[p_row[idx]], res.t[p_row[idx]]
+        Rg, tgt, K = p_R[idx], p_t[idx], p_K[idx]
+        ex = p_exact[idx]
+        d = model.diameter
+        if "mssd" in want:
+            th = M.MSSD_THRESHOLDS
+            cut = th[-1] * d * (1 + 1e-9) + 1e-9
+            binof = lambda x, b: np.searchsorted(th, x / d, side="right")  # noqa: E731
+            v = np.empty(len(idx))
+            for sel, bf in ((~ex, binof), (ex, None)):
+                if sel.any():
+                    v[sel] = M.mssd_fast(model, Re[sel], te[sel], Rg[sel], tgt[sel], cut, bf).lo
+            mssd_e[idx] = v / d
+        if "mspd" in want:
+            th = M.MSPD_THRESHOLDS
+            fac = np.array([M.MSPD_WIDTH / ds.image_width(int(sc)) for sc in p_scene[idx]])
+            v = np.empty(len(idx))
+            for sel, by_bin in ((~ex, True), (ex, False)):
+                if sel.any():
+                    f = fac[sel]
+                    cut = float(th[-1] / f.min()) * (1 + 1e-9) + 1e-9
+                    bf = (lambda x, b, f=f: np.searchsorted(th, x * f[b], side="right")) if by_bin else None
+                    v[sel] = M.mspd_fast(model, Re[sel], te[sel], Rg[sel], tgt[sel], K[sel], cut, bf).lo * f
+            mspd_e[idx] = v
+
+    tic = _time.perf_counter()
+    objs = sorted(set(p_obj.tolist()), key=lambda o: -int((p_obj == o).sum()))
+    with ThreadPoolExecutor(max_workers=max(1, min(THREADS, len(objs)))) as pool:
+        list(pool.map(job, objs))
+    timings["mssd_mspd"] = _time.perf_counter() - tic
+    errs["mssd"], errs["mspd"] = mssd_e, mspd_e
+    if "vsd" in want:
+        tic = _time.perf_counter()
+        errs["vsd"] = _vsd_errors(ds, res, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings)
+        timings["vsd"] = _time.perf_counter() - tic
+    # matching: single targets at once, several instances greedily (BOP19)
+    ths = {"mssd": M.MSSD_THRESHOLDS, "mspd": M.MSPD_THRESHOLDS, "vsd": M.VSD_THRESHOLDS}
+    blocks_a = np.array([b[:5] for b in blocks], dtype=np.int64).reshape(-1, 5)
+    one = (blocks_a[:, 2] == 1) & (blocks_a[:, 3] == 1) & (np.array([b[5] for b in blocks]) == 1)
+    for m in want:
+        th = ths[m]
+        E = errs[m]
+        for ob in np.unique(blocks_a[one, 0]):
+            sel = one & (blocks_a[:, 0] == ob)
+            pi, slot = blocks_a[sel, 1], blocks_a[sel, 4]
+            out[int(ob)][m][slot] = E[pi][..., None] < th
+        for k in np.flatnonzero(~one):
+            ob, p0, ne, ng, slot = (int(x) for x in blocks_a[k])
+            blk = E[p0:p0 + ne * ng]
+            if m == "vsd":
+                blk = blk.reshape(ne, ng, -1)
+                for ti in range(blk.shape[2]):
+                    for j, t in enumerate(th):
+                        out[ob][m][slot:slot + _greedy_count(blk[:, :, ti], t), ti, j] = True
+            else:
+                blk = blk.reshape(ne, ng)
+                for j, t in enumerate(th):
+                    out[ob][m][slot:slot + _greedy_count(blk, t), j] = True
+    return out
+
+
+def _vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings,
+                chunk: int = 32) -> np.ndarray:
+    """VSD (n, 10 taus) of every pair, image by image: chunks of ``chunk`` test depths, the next
+    chunk read by a thread while this one is scored (open3d's ray casting uses every core)."""
+    n = len(p_obj)
+    out = np.ones((n, len(M.VSD_TAUS)))
+    key = p_scene * (1 << 32) + p_im
+    order = np.argsort(key, kind="stable")
+    ims, first = np.unique(key[order], return_index=True)
+    bounds = np.r_[first, n]
+    chunks = [range(i, min(len(ims), i + chunk)) for i in range(0, len(ims), chunk)]
+    t_read = [0.0]
+
+    def load(ch):
+        tic = _time.perf_counter()
+        imgs = [ds.depth_mm(int(ims[i] >> 32), int(ims[i] & 0xFFFFFFFF)) for i in ch]
+        t_read[0] += _time.perf_counter() - tic
+        return imgs
+
+    t_wait = 0.0
+    with ThreadPoolExecutor(max_workers=1) as reader:
+        nxt = reader.submit(load, chunks[0]) if chunks else None
+        for ci, ch in enumerate(chunks):
+            tic = _time.perf_counter()
+            imgs = nxt.result()
+            t_wait += _time.perf_counter() - tic
+            nxt = reader.submit(load, chunks[ci + 1]) if ci + 1 < len(chunks) else None
+            for shp in {im.shape for im in imgs}:  # one image size per stack
+                local = [k for k, im in enumerate(imgs) if im.shape == shp]
+                stack = np.stack([imgs[k] for k in local])
+                sel = np.concatenate([order[bounds[ch[k]]:bounds[ch[k] + 1]] for k in local])
+                img_of = np.concatenate([np.full(bounds[ch[k] + 1] - bounds[ch[k]], j) for j, k in enumerate(local)])
+                for ob in np.unique(p_obj[sel]):
+                    m = p_obj[sel] == ob
+                    idx = sel[m]
+                    r = p_row[idx]
+                    out[idx] = M.vsd_batch(ds.renderer(int(ob)), res.R[r], res.t[r], p_R[idx], p_t[idx], p_K[idx],
+                                           stack, img_of[m], ds.model(int(ob)).diameter)
+    timings["depth_read"] = t_read[0]
+    timings["depth_wait"] = t_wait
+    return out
 
 
 def score(results: Any, dataset_root: str | Path, split: str | None = None,
-          targets: str | Path | None = None) -> dict[str, Any]:
+          targets: str | Path | None = None, metrics: Any = None) -> dict[str, Any]:
     """Score ``results`` (a BOP results CSV path, a :class:`Results`, or a list of
     (scene_id, im_id, obj_id, score, R, t, time) rows) on the dataset at ``dataset_root`` with the
     targets of ``split`` ('simple' | 'hard': ROOT/test_targets_{split}.json) or the ``targets``
-    file. Returns {"objects": {"<obj_id>": {...}}, "mean": {...}, "all": {...}} (see the module
-    docstring); accuracies and AUCs are fractions in [0, 1]."""
-    return evaluate(results, dataset_root, split, targets).summary()
+    file. ``metrics``: None (the default set) or names of :data:`METRICS`. Returns
+    {"objects": {"<obj_id>": {...}}, "mean": {...}, "all": {...}, "scenes": {"<scene_id>": {...}}}
+    (see the module docstring); accuracies, AUCs and average recalls are fractions in [0, 1]."""
+    return evaluate(results, dataset_root, split, targets, metrics=metrics).summary()
 
 
-__all__ = ["ADD_THRESHOLD", "PROJ_THRESHOLD", "AUC_MAX", "KEYS", "DatasetView", "Targets", "ObjectEval",
-           "Evaluation", "load_targets", "require_targets", "targets_path", "evaluate", "score"]
+__all__ = ["ADD_THRESHOLD", "PROJ_THRESHOLD", "AUC_MAX", "KEYS", "BOP_KEYS", "METRICS", "DatasetView", "Targets",
+           "ObjectEval", "Evaluation", "load_targets", "require_targets", "targets_path", "parse_metrics",
+           "resolve_metrics", "vsd_unavailable", "evaluate", "score"]
 
 
 def score_command(results: list[Path], dataset: Path, split: str | None, targets: Path | None,
-                  json_out: Path | None, plots: Path | None) -> str:
+                  json_out: Path | None, plots: Path | None, metrics: str | None = None) -> str:
     """``tdof20 benchmark score RESULTS.csv... --dataset ROOT (--split S | --targets F) [--json OUT]
-    [--plots DIR]``: score each results file, write the JSON (one file: its summary; several:
-    {"<method>": summary, ...}) and the plots plus ``report.md`` (Markdown tables) in DIR, and
-    return the text to print: Tables 1-2, every metric per method, warnings and timings."""
+    [--plots DIR] [--metrics add,proj,vsd,mssd,mspd,ar]``: score each results file, write the JSON
+    (one file: its summary; several: {"<method>": summary, ...}) and the plots plus ``report.md``
+    (Markdown tables) in DIR, and return the text to print: Tables 1-3 (those computed), every
+    metric per method and per scene, warnings and timings."""
     from tdof20.benchmark import report
     from tdof20.formats.io import atomic_write_bytes, check_output_dir, check_output_file, write_json
 
     if not results:
         raise TdofError("give at least one results file")
+    parse_metrics(metrics)  # a bad --metrics is refused before anything is read
     if json_out is not None:
         check_output_file(json_out, "--json", "JSON file")
     if plots is not None:
         check_output_dir(plots, "--plots", "folder for the plots and report.md")
     ds = DatasetView(dataset)
     tpath = targets_path(ds.root, split, targets)
-    evals = [evaluate(r, ds.root, split, targets, dataset=ds) for r in results]
+    evals = [evaluate(r, ds.root, split, targets, dataset=ds, metrics=metrics) for r in results]
     names = report.method_names(evals)
     n_targets = max((e.summary()["all"]["n"] for e in evals), default=0)
     head = f"dataset {ds.root}  targets {tpath.name} ({n_targets} target instances)"
@@ -658,10 +1057,11 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
     notes = []
     for name, ev in zip(names, evals):
         for w in ev.warnings:
-            notes.append(f"warning: {name}: {w}")
+            notes.append(f"{'note' if w.startswith('VSD not computed') else 'warning'}: {name}: {w}")
         t = ev.timings
+        bop = f", BOP metrics {t['bop']:.2f} s" if "bop" in t else ""
         notes.append(f"{name}: {ev.n_rows} rows scored in {t['total']:.2f} s (read {t['read']:.2f} s, "
-                     f"metrics {t['metrics']:.2f} s)")
+                     f"metrics {t['metrics']:.2f} s{bop})")
     if json_out is not None:
         content = evals[0].summary() if len(evals) == 1 else {n: e.summary() for n, e in zip(names, evals)}
         write_json(json_out, content)
