@@ -196,9 +196,9 @@ def _turn_between(P: np.ndarray, Q: np.ndarray, n: np.ndarray, origin: np.ndarra
     def refine(a: float, free: bool) -> tuple[float, np.ndarray, float]:
         R2 = rot(a)
         t2 = q2.mean(0) - p2.mean(0) @ R2.T
-        for it in range(15):
+        for it in range(10):
             x = p2 @ R2.T + t2
-            d, j = tree.query(np.column_stack([x, ph]), distance_upper_bound=4 * tol_mm if it < 5 else 2 * tol_mm)
+            d, j = tree.query(np.column_stack([x, ph]), distance_upper_bound=4 * tol_mm if it < 4 else 2 * tol_mm)
             ok = np.isfinite(d)
             if ok.sum() < 10:
                 break
@@ -221,7 +221,7 @@ def _turn_between(P: np.ndarray, Q: np.ndarray, n: np.ndarray, origin: np.ndarra
         return np.linalg.solve(np.eye(2) - rot(a), t2)
 
     coarse = np.array([score(rot(a), q2.mean(0) - p2.mean(0) @ rot(a).T) for a in trials])
-    fits = [refine(trials[i], free) for i in np.argsort(-coarse)[:8 if free else 1]]
+    fits = [refine(trials[i], free) for i in np.argsort(-coarse)[:5 if free else 1]]
     if free:   # turns about a centre on the table only
         fits = [f for f in fits if (c := centre(f[0], f[1])) is not None and np.linalg.norm(c) <= max_radius_mm]
         if not fits:
@@ -284,7 +284,7 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
     compared at the nominal turn, at the reversed turn and at the best turn over the whole circle:
     the nominal explains the data when its fit is within 85 % of the best (or 0.6 at least); the
     reversed one when it does and the nominal fits half as well; another turn when the nominal
-    fits half as well as the best. The pairs of every arm position vote (until three agree); a
+    fits half as well as the best. The pairs of the arm positions vote (until two or more agree, unopposed); a
     majority of two pairs at least decides; anything less keeps the recorded (or default) direction. A direction left out of
     session.json is taken from the data; a recorded one that the data contradicts, or a step
     angle the data does not show, is a one-line TdofError naming session.json. Silent (keeps
@@ -318,8 +318,8 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
                 v = "unclear"
             votes.append((v, arm, p))
         decided = [v for v, _, _ in votes if v != "unclear"]
-        if len(decided) >= 3 and len(set(decided[:3])) == 1:
-            break
+        if len(decided) >= 2 and len(set(decided)) == 1 and len(decided) * 2 > len(votes):
+            break   # the arms so far agree: the others would only cost time
     names = [v for v, _, _ in votes]
     verdict = max(("nominal", "reversed", "other"), key=names.count) if votes else "nominal"
     if verdict == "nominal" or names.count(verdict) < 2 or names.count(verdict) * 2 <= len(names):
