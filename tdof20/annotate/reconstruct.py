@@ -18,6 +18,26 @@ jar single/13, whose wall is 3 mm thick, against the true model; true poses, 240
   that see that side, and are pulled inside. With 8 mm the jar's outer wall came out 0.5 mm
   and its inner wall 2.6 mm off the truth (the model 2.7 mm too wide); with 4 mm (two voxels;
   3x the depth noise of a 240x180 frame at 0.5 m) -0.03 and +0.46 mm.
+
+Repeatable: the same frames give the same plane, clusters and files run to run, bit for bit.
+Two things of open3d are not: the TSDF's blocks sit in a hash map that several threads fill, so
+the extracted points and the mesh come out in another order each run (their values do not
+change: each voxel is integrated by one thread), and ``segment_plane`` draws its samples from one
+generator shared by its OpenMP threads (with a stop that depends on how far the others got), so
+even a seeded run differs with more than one thread. Hence: the extracted points (with their
+normals) and the mesh are put in a canonical order (lexicographic by coordinates, duplicated mesh
+vertices merged) before anything reads them; the table plane is found by :func:`fit_plane`, a
+RANSAC seeded by ``seed`` on numpy, refined by least squares on its inliers until the inlier set
+no longer changes (so the plane is the centre of the table's band, not one of the random planes
+within it); clusters are ordered by size, then centroid, each with its points in that canonical
+order. Measured over 5 processes on the same frames of single/12 with a cabinet beside the table
+(640x480, 4 arms x 24 steps, true poses): before (segment_plane on the hash map's order) the
+plane moved up to 0.006 mm over the turntable and the points, clusters and mesh came out in
+other orders (a clean session's clusters also lost or gained a border point in DBSCAN); now all
+five are identical, bit for bit — so are the built model and the labels after them
+(``benchmarks/annotate_accuracy.py --repeat``; ``tests/test_repeatable.py`` runs the stage twice
+in two processes). The TSDF integration itself needs no bound: its values were the same in
+every run, only their order was not.
 """
 
 from __future__ import annotations
@@ -44,19 +64,23 @@ class ReconstructionConfig:
     min_weight: float = 2.0           # a surface voxel must be seen by this many frames
     block_count: int = 40000          # hash-map capacity of the TSDF grid
     min_cluster_points: int = 300     # smaller clusters are noise
+    plane_iters: int = 1000           # RANSAC hypotheses per plane
+    seed: int = 0                     # of the RANSAC samples (the least-squares refinement all but
+                                      # removes their effect)
 
     def __post_init__(self) -> None:
         check_ranges(self, "reconstruct", positive=("voxel_mm", "sdf_trunc_mm", "depth_max_mm", "plane_dist_mm",
                                                     "crop_radius_mm", "cluster_eps_mm", "cluster_min_points",
-                                                    "min_weight", "block_count", "min_cluster_points"),
-                     non_negative=("above_table_mm",))
+                                                    "min_weight", "block_count", "min_cluster_points",
+                                                    "plane_iters"),
+                     non_negative=("above_table_mm", "seed"))
 
 
 @dataclass
 class Reconstruction:
     points: np.ndarray                # (N,3) fused scene surface points, reference frame, mm
     plane: np.ndarray                 # (4,) table plane a x + b y + c z + d = 0, normal towards the objects
-    clusters: list[np.ndarray] = field(default_factory=list)  # (Ni,3) object points, largest first
+    clusters: list[np.ndarray] = field(default_factory=list)  # (Ni,3) object points, largest first (then by centroid)
     mesh: object = None               # open3d TriangleMesh of the fused scene
     cluster_normals: list[np.ndarray] = field(default_factory=list)  # (Ni,3) unit normals of the clusters
     # (the TSDF's gradient: oriented towards the free space the cameras saw, each wall of a thin
@@ -93,6 +117,113 @@ def fuse(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera,
     return vbg
 
 
+def _plane_distance(P: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Signed distances of P (N,3) to the plane (4,), elementwise (no BLAS: the same bits on any
+    number of threads)."""
+    return P[:, 0] * plane[0] + P[:, 1] * plane[1] + P[:, 2] * plane[2] + plane[3]
+
+
+def _least_squares_plane(P: np.ndarray) -> np.ndarray | None:
+    """The total-least-squares plane (4,) of P (N,3): through the centroid, normal along the
+    smallest eigenvector of the scatter (sums written out: summation order fixed)."""
+    c = P.mean(axis=0)
+    Q = P - c
+    xx, yy, zz = (Q[:, 0] ** 2).sum(), (Q[:, 1] ** 2).sum(), (Q[:, 2] ** 2).sum()
+    xy, xz, yz = (Q[:, 0] * Q[:, 1]).sum(), (Q[:, 0] * Q[:, 2]).sum(), (Q[:, 1] * Q[:, 2]).sum()
+    w, U = np.linalg.eigh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
+    n = U[:, 0]
+    if not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-12:
+        return None
+    n = n / np.linalg.norm(n)
+    return np.r_[n, -(n @ c)]
+
+
+def fit_plane(points: np.ndarray, dist_mm: float, iters: int = 1000, seed: int | tuple = 0,
+              score_points: int = 20000, refine_iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """The dominant plane of ``points`` (N,3) -> (plane (4,) unit normal, d; inlier indices).
+
+    RANSAC: ``iters`` triples drawn by numpy's generator seeded with ``seed`` (an int or a
+    tuple of ints), each scored by its inliers (closer than ``dist_mm``) among at most
+    ``score_points`` of the points (every k-th); the best (the first of equals) is refined by
+    least squares on its inliers among all points, again and again until the inlier set stops
+    changing. Deterministic for the same
+    points in the same order; the refined plane is the centre of the band the best hypothesis
+    found, not the hypothesis. The normal's sign is the caller's to choose. Fewer than 3
+    points: a zero plane and no inliers."""
+    P = np.asarray(points, np.float64)
+    n = len(P)
+    if n < 3:
+        return np.zeros(4), np.zeros(0, np.int64)
+    rng = np.random.default_rng(seed)
+    S = P[:: max(1, n // score_points)]
+    idx = rng.integers(0, n, size=(iters, 3))
+    a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    nrm = np.cross(b - a, c - a)
+    length = np.linalg.norm(nrm, axis=1)
+    ok = length > 1e-9
+    if not ok.any():
+        return np.zeros(4), np.zeros(0, np.int64)
+    nrm = nrm[ok] / length[ok, None]
+    hyp = np.concatenate([nrm, -np.einsum("ij,ij->i", nrm, a[ok])[:, None]], axis=1)
+    counts = np.empty(len(hyp), np.int64)
+    for k in range(0, len(hyp), 64):
+        h = hyp[k:k + 64]
+        d = S[:, :1] * h[:, 0] + S[:, 1:2] * h[:, 1] + S[:, 2:3] * h[:, 2] + h[:, 3]
+        counts[k:k + 64] = (np.abs(d) < dist_mm).sum(axis=0)
+    plane = hyp[int(np.argmax(counts))]
+    inl = np.flatnonzero(np.abs(_plane_distance(P, plane)) < dist_mm)
+    for _ in range(refine_iters):
+        if len(inl) < 3:
+            break
+        refined = _least_squares_plane(P[inl])
+        if refined is None:
+            break
+        plane = refined
+        new = np.flatnonzero(np.abs(_plane_distance(P, plane)) < dist_mm)
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return plane, inl
+
+
+def _canonical_order(P: np.ndarray, N: np.ndarray | None = None) -> np.ndarray:
+    """Indices putting points (and their normals, to break ties) in lexicographic order."""
+    keys = [P[:, 2], P[:, 1], P[:, 0]]
+    if N is not None:
+        keys = [N[:, 2], N[:, 1], N[:, 0]] + keys
+    return np.lexsort(keys)
+
+
+def _canonical_mesh(mesh):
+    """The legacy mesh with duplicated vertices merged, vertices in lexicographic order, each
+    triangle starting at its smallest index (winding kept), triangles sorted."""
+    mesh.remove_duplicated_vertices()
+    V = np.asarray(mesh.vertices)
+    if len(V) == 0:
+        return mesh
+    order = _canonical_order(V, np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None)
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    T = rank[np.asarray(mesh.triangles, np.int64)]
+    if len(T):
+        T = _roll_min_first(T)
+        T = T[np.lexsort((T[:, 2], T[:, 1], T[:, 0]))]
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V[order]),
+                                    o3d.utility.Vector3iVector(T.astype(np.int32)))
+    if mesh.has_vertex_normals():
+        out.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals)[order])
+    if mesh.has_vertex_colors():
+        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
+    return out
+
+
+def _roll_min_first(T: np.ndarray) -> np.ndarray:
+    """(M,3) triangles cyclically turned so that each starts at its smallest index."""
+    k = np.argmin(T, axis=1)
+    cols = (k[:, None] + np.arange(3)[None, :]) % 3
+    return np.take_along_axis(T, cols, axis=1)
+
+
 def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera, axis_point: np.ndarray,
                 axis_dir: np.ndarray, cfg: ReconstructionConfig = ReconstructionConfig()) -> Reconstruction:
     """Fuse the frames, find the turntable top, keep what stands on it, cluster it.
@@ -108,8 +239,11 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     pts = pc.point.positions.numpy().astype(np.float64) * 1000.0
     nrm = pc.point.normals.numpy().astype(np.float64) if "normals" in pc.point else np.zeros_like(pts)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    order = _canonical_order(pts, nrm)  # the hash map's order changes run to run (module docstring)
+    pts, nrm = pts[order], nrm[order]
     mesh = vol.extract_triangle_mesh(weight_threshold=cfg.min_weight).to_legacy()
     mesh.scale(1000.0, center=(0, 0, 0))
+    mesh = _canonical_mesh(mesh)
     a = np.asarray(axis_dir, float) / np.linalg.norm(axis_dir)
     p0 = np.asarray(axis_point, float)
     if a @ (np.zeros(3) - p0) < 0:  # "up": from the table towards the reference camera
@@ -120,13 +254,12 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     cyl, cyl_n = pts[in_cyl], nrm[in_cyl]
     plane = None
     rest = cyl
-    for _ in range(4):
+    for k in range(4):
         if len(rest) < 100:
             break
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        cand, inl = cloud.segment_plane(cfg.plane_dist_mm, 3, 1000)
-        cand = np.asarray(cand, float)
-        cand /= np.linalg.norm(cand[:3])
+        cand, inl = fit_plane(rest, cfg.plane_dist_mm, cfg.plane_iters, seed=(cfg.seed, k))
+        if not len(inl):
+            break
         if cand[:3] @ a < 0:
             cand = -cand
         if cand[:3] @ a > 0.995 and (plane is None or len(inl) > plane[1]):
@@ -135,7 +268,7 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     if plane is None:
         return Reconstruction(pts, np.r_[a, -a @ p0], [], mesh)
     plane = plane[0]
-    dist = cyl @ plane[:3] + plane[3]
+    dist = _plane_distance(cyl, plane)
     above = dist > cfg.above_table_mm
     cand, cand_n = cyl[above], cyl_n[above]
     clusters = []
@@ -145,6 +278,6 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
         for lab in range(labels.max() + 1 if len(labels) else 0):
             sel = labels == lab
             if sel.sum() >= cfg.min_cluster_points:
-                clusters.append((cand[sel], cand_n[sel]))
-        clusters.sort(key=lambda cn: len(cn[0]), reverse=True)
+                clusters.append((cand[sel], cand_n[sel]))  # (in the canonical order of cand)
+        clusters.sort(key=lambda cn: (-len(cn[0]), *cn[0].mean(axis=0).tolist()))
     return Reconstruction(pts, plane, [c for c, _ in clusters], mesh, [n for _, n in clusters])
