@@ -42,21 +42,10 @@ SCENE_FRAMES = 3200
 
 
 def _inputs(session: Path):
-    from tdof20.annotate.evaluate import truth_T_ref_frame
+    from tdof20.annotate.evaluate import truth_label_inputs
     from tdof20.formats import read_scene
-    from tdof20.objects import get_object
 
-    truth = read_scene(session / "truth")
-    T = truth_T_ref_frame(session)
-    T_ref_frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
-    placements = []
-    for g, e in enumerate(truth.gt[0]):
-        R, t = truth.pose(0, g)
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        placements.append((e["obj_id"], M))
-    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in placements}
-    return truth, T_ref_frames, placements, models
+    return (read_scene(session / "truth"), *truth_label_inputs(session))
 
 
 def _check(out: Path, truth) -> dict:

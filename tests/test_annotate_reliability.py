@@ -11,18 +11,16 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 from tdof20.annotate.config import AnnotateConfig, load_annotate_config
-from tdof20.annotate.evaluate import truth_T_ref_frame
+from tdof20.annotate.evaluate import truth_label_inputs
 from tdof20.annotate.label import LabelConfig, label_scene
 from tdof20.annotate.pipeline import annotate
 from tdof20.annotate.state import FolderLock as _Lock
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
-from tdof20.formats import RawSession, read_json, read_scene
-from tdof20.objects import get_object
+from tdof20.formats import RawSession, read_json
 
 CFG = AnnotateConfig(label=LabelConfig(workers=1))
 
@@ -110,19 +108,7 @@ def test_a_jpeg_named_png_is_skipped_not_copied(tmp_path):
     assert "1" not in read_json(out / "scene_gt.json")
 
 
-def _truth_labels(raw: Path):
-    """T_ref_frames, placements and models of a simulated session from its exact truth."""
-    truth = read_scene(raw / "truth")
-    T = truth_T_ref_frame(raw)
-    frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
-    places = []
-    for g, ent in enumerate(truth.gt[0]):
-        R, t = truth.pose(0, g)
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        places.append((ent["obj_id"], M))
-    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in places}
-    return frames, places, models
+_truth_labels = truth_label_inputs
 
 
 # ------------------------------------------------------------------------------------- the label gate

@@ -21,11 +21,10 @@ import pytest
 from tdof20.annotate.executors import run_chunks
 from tdof20.annotate.label import LabelConfig, _LabelJob, label_scene
 from tdof20.annotate.labels import mask_iou
-from tdof20.annotate.evaluate import truth_T_ref_frame
+from tdof20.annotate.evaluate import truth_label_inputs
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, dumps_bop_json, read_json, read_scene
-from tdof20.objects import get_object
 
 ARMS, STEPS = 2, 4
 
@@ -40,17 +39,7 @@ def session(tmp_path_factory) -> Path:
 
 def truth_inputs(session: Path):
     """T_ref_frames, placements and models from the simulator's truth."""
-    truth = read_scene(session / "truth")
-    T = truth_T_ref_frame(session)  # (arms, steps, 4, 4)
-    T_ref_frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
-    placements = []
-    for g, e in enumerate(truth.gt[0]):  # im_id 0 = arm 0 step 0 = the reference camera
-        R, t = truth.pose(0, g)
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        placements.append((e["obj_id"], M))
-    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in placements}
-    return T_ref_frames, placements, models
+    return truth_label_inputs(session)
 
 
 @pytest.fixture(scope="module")

@@ -41,7 +41,7 @@ _LAZY = {
     "LabelConfig": "label", "label_scene": "label",
     "write_qa": "qa",
     "evaluate_scene": "evaluate", "evaluate_command": "evaluate",
-    "evaluate_against_truth": "evaluate", "truth_T_ref_frame": "evaluate",
+    "evaluate_against_truth": "evaluate", "truth_T_ref_frame": "evaluate", "truth_label_inputs": "evaluate",
 }
 
 __all__ = ["ArmRegistration", "FrameRegistration", "RegistrationConfig", "RegistrationResult",

@@ -59,6 +59,7 @@ if TYPE_CHECKING:   # the type only: the registration imports open3d
     from tdof20.annotate.registration import RegistrationResult
 
 __all__ = ["evaluate_scene", "evaluate_command", "evaluate_against_truth", "model_centre", "truth_T_ref_frame",
+           "truth_label_inputs",
            "TARGETS"]
 
 # issue 4, part 7: what an annotation of a simulated scene must reach (medians)
@@ -426,6 +427,26 @@ def truth_T_ref_frame(session_dir: str | Path) -> np.ndarray:
     out = np.full_like(T, np.nan)
     out[ok] = T[0, 0] @ invert(T[ok])
     return out
+
+
+def truth_label_inputs(session_dir: str | Path) -> tuple[dict, list, dict]:
+    """What the label stage needs, from a simulated session's exact truth (the labels a perfect
+    registration and placement would give): ``T_ref_frames`` {(arm, step): (4,4)}, the
+    placements [(obj_id, T_ref_model)] (the truth's poses in image 0, the reference camera) and
+    the catalog's models {obj_id: (vertices, faces)}."""
+    from tdof20.objects import get_object
+
+    T = truth_T_ref_frame(session_dir)
+    frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
+    truth = read_scene(Path(session_dir) / "truth")
+    placements = []
+    for g, e in enumerate(truth.gt[0]):
+        R, t = truth.pose(0, g)
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, t
+        placements.append((int(e["obj_id"]), M))
+    models = {o: (get_object(o).vertices, get_object(o).faces) for o, _ in placements}
+    return frames, placements, models
 
 
 def evaluate_against_truth(result: "RegistrationResult", session_dir: str | Path, max_pairs: int = 20000,
