@@ -15,7 +15,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from tdof20.annotate.reconstruct import fit_plane
+from tdof20.geometry.fitting import fit_plane
 from tdof20.capture import run_capture, sim_config
 
 # One reconstruction of a session, with the true poses and the pipeline's crop, saved to an npz.

@@ -379,7 +379,6 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     """Everything within one arm position. Returns (arm info, T_arm_frame per step, frames, fused cloud)."""
     info = session.info
     K, sd = info.steps, info.step_deg
-    o3d.utility.random.seed(arm)  # RANSAC of the table plane: the same result in any process, any order
     A = _Arm(arm, K)
     available = [k for k in range(K) if session.has_frame(cfg.phase, arm, k)]
     for k in range(K):

@@ -25,6 +25,7 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.formats.session import RawSession
+from tdof20.geometry.fitting import fit_plane
 from tdof20.geometry.transforms import invert, rotation_about_axis
 from tdof20.o3d import o3d
 
@@ -393,10 +394,10 @@ def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: l
     cpts = np.asarray(pc.points).copy()
     cands = []                     # (n, d, inliers) of planes near the vertical prior
     first = None
-    for _ in range(5):
+    for it in range(5):   # seeded numpy RANSAC: open3d's segment_plane is not repeatable on several threads
         if len(pc.points) < 100:
             break
-        model, inl = pc.segment_plane(cfg.plane_dist_mm, 3, 1000)
+        model, inl = fit_plane(np.asarray(pc.points), cfg.plane_dist_mm, 1000, seed=(arm, it), refine_iters=0)
         if len(inl) < 50:
             break
         n = np.asarray(model[:3], float)
@@ -409,7 +410,7 @@ def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: l
             first = (n, d)
         if ang <= cfg.plane_prior_max_deg:
             cands.append((n, d, len(inl)))
-        pc = pc.select_by_index(inl, invert=True)
+        pc = pc.select_by_index(inl.tolist(), invert=True)
     # the turntable top is the highest level plane with (almost) nothing that moves below it: the
     # objects turn with the table and stand on it; the bench below it stays put; an object's flat
     # top has the rest of the moving object below it
