@@ -199,23 +199,9 @@ def straightforward(root: Path, subset: int, seed: int = 1) -> dict:
     points (ADD-S), plain numpy for ADD and 2D projection. Compares with the fast run."""
     from scipy.spatial import cKDTree
 
-    from tdof20.benchmark.results import read_results
-    from tdof20.benchmark.scoring import DatasetView, _group_rows
-
-    ds = DatasetView(root)
-    res = read_results(root / "synthetic_tdof20-hard.csv")
-    groups = _group_rows(res)
-    targets = json.loads((root / "test_targets_hard.json").read_text())
     # the fast run's per-object order: single-instance matched targets in file order, then missing
+    res, ds, matched = _matched_singles(root)
     fast = json.loads((root / "fast_errors.json").read_text())
-    pos: dict[int, int] = {}
-    matched = []
-    for t in targets:
-        key = (t["scene_id"], t["im_id"], t["obj_id"])
-        if key in groups:
-            k = pos.get(t["obj_id"], 0)
-            pos[t["obj_id"]] = k + 1
-            matched.append((t, int(groups[key][0]), k))
     rng = np.random.default_rng(seed)
     pick = [matched[i] for i in rng.choice(len(matched), size=min(subset, len(matched)), replace=False)]
     t0 = time.perf_counter()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -517,7 +516,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict,
-    score, OUT/report.md (about 1.5 minutes on 2 idle CPU cores with the defaults; a rerun resumes)."""
+    score, OUT/report.md (about 2 minutes on 2 idle CPU cores with the defaults; a rerun resumes)."""
     from tdof20.demo import run_demo
 
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())

@@ -22,3 +22,15 @@ def small_session(tmp_path_factory, small_cfg):
     out = tmp_path_factory.mktemp("sim") / "session"
     run_capture(small_cfg, out, yes=True, show_progress=False)
     return out
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch intra-op thread for a module that trains (two threads on a busy 2-core machine
+    spin against each other: one step 0.5 s with one thread, 3-10 s with two); restored after."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -21,14 +21,7 @@ def _inputs(b: int = 2, seed: int = 0):
     return torch.rand(b, 3, H, W, generator=g), torch.randn(b, 6, H, W, generator=g)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One intra-op thread: two threads on a busy 2-core machine spin against each other (forward
-    and backward passes took several times longer); the results do not depend on it."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -34,13 +34,7 @@ TRAIN = dict(image_size=TRAIN_SIZE, batch_size=4, lr=2e-3, seed=0, num_workers=1
 EPOCHS_FIRST, EPOCHS_TOTAL = 1, 2
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One intra-op thread for this module (see the module's docstring); restored afterwards."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -32,13 +32,7 @@ TINY = dict(image_size=(32, 32), batch_size=2, num_workers=0, progress=False, de
 TORCHRUN_TIMEOUT_S = 240  # a guard against a hang (the run takes well under a minute on an idle machine)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One intra-op thread: two threads on a busy 2-core machine spin against each other."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _scene(base: Path, name: str, steps: int, deg: float, arms: int) -> Path:

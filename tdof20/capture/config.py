@@ -16,14 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from tdof20.errors import TdofError
 from tdof20.config import config_from_data, fail as _fail, load_config_file
 
 TWO_PI = 2 * math.pi
