@@ -187,7 +187,7 @@ def test_predict_checks_its_output_before_the_work(data, tmp_path, capsys):
     afile.write_text("keep me")
     code, err = cli(capsys, "predict", run, "--dataset", data["root"], "--split", "simple", "--out",
                     afile / "sub" / "r.csv")
-    one_line_error(code, err, f"{afile} is a file, not a folder")
+    one_line_error(code, err, f"{afile} is a file, so nothing can be written under it")
     assert afile.read_text() == "keep me"
     (tmp_path / "r_info.json").mkdir()
     code, err = cli(capsys, "predict", run, "--dataset", data["root"], "--split", "simple", "--out",
@@ -202,7 +202,7 @@ def test_train_checks_its_output_before_the_work(data, tmp_path, capsys):
     one_line_error(code, err, str(afile), "--out is a file, not a run folder")
     code, err = cli(capsys, "train", "hff6dof", "--dataset", data["root"], "--split", "simple", "--out",
                     afile / "run")
-    one_line_error(code, err, f"{afile} is a file, not a folder")
+    one_line_error(code, err, f"{afile} is a file, so nothing can be written under it")
     assert afile.read_text() == "keep me"
     code, err = cli(capsys, "train", "hff6dof", "--dataset", data["root"], "--split", "simple", "--out",
                     data["root"])

@@ -138,7 +138,7 @@ def check_output_file(path: str | Path, option: str, what: str = "file") -> Path
     path = Path(path)
     if path.is_dir():
         raise TdofError(f"{option} names a folder: give the {what} to write", path)
-    _check_parents(path, option)
+    check_parents(path, option)
     return path
 
 
@@ -147,11 +147,14 @@ def check_output_dir(path: str | Path, option: str, what: str = "folder") -> Pat
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise TdofError(f"{option} names a file: give a {what}", path)
-    _check_parents(path, option)
+    check_parents(path, option)
     return path
 
 
-def _check_parents(path: Path, option: str) -> None:
+def check_parents(path: str | Path, option: str) -> None:
+    """Refuse an output path under a file, or in a folder this user cannot write (the nearest
+    existing folder above it is the one that counts: the rest is created)."""
+    path = Path(path)
     for up in path.absolute().parents:
         if up.exists():
             if not up.is_dir():

@@ -30,7 +30,6 @@ preparing the images is not counted), shared evenly among the images of a batch.
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -39,6 +38,7 @@ import torch
 
 from tdof20.errors import TdofError
 from tdof20.formats import write_json
+from tdof20.formats.io import check_parents
 from tdof20.methods.data import HFFTransform, SceneImages, TransformedDataset, backproject, collate, keypoint_table, \
     keypoints_from_json, split_part_images, worker_init
 from tdof20.methods.fitting import kabsch_torch
@@ -58,13 +58,7 @@ def check_output_file(path: str | Path, option: str = "--out", if_folder: str | 
     if path.is_dir():
         raise TdofError(f"{option} is a folder, not a file: "
                         f"{if_folder or 'give a file name, such as ' + str(path / 'results.csv')}", path)
-    p = path.parent
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    if not p.is_dir():
-        raise TdofError(f"{option} cannot be written: {p} is a file, not a folder", path)
-    if not os.access(p, os.W_OK | os.X_OK):
-        raise TdofError(f"{option} cannot be written: no permission to write in {p}", path)
+    check_parents(path, option)
     return path
 
 

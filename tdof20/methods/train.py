@@ -43,6 +43,7 @@ import torch
 
 from tdof20.errors import TdofError
 from tdof20.formats import read_json, write_json
+from tdof20.formats.io import check_parents
 from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, N_KEYPOINTS, HFFTransform, TransformedDataset,
                                  check_depth_mode, collate, keypoints_from_json, keypoints_to_json,
                                  model_keypoints, split_part_images, worker_init)
@@ -259,13 +260,7 @@ def check_run_folder(out_run: Path, dataset_root: Path) -> None:
     if out_run.exists() and not out_run.is_dir():
         raise TdofError("--out is a file, not a run folder: give a folder (created) or an existing run to resume",
                         out_run)
-    p = out_run
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    if not p.is_dir():
-        raise TdofError(f"--out cannot be made: {p} is a file, not a folder", out_run)
-    if not os.access(p, os.W_OK | os.X_OK):
-        raise TdofError(f"--out cannot be written: no permission to write in {p}", out_run)
+    check_parents(out_run, "--out")
     if (out_run / "dataset_info.json").exists() or out_run.resolve() == dataset_root.resolve():
         raise TdofError("--out is a dataset root (it is only read): give a run folder of its own", out_run)
     cfg = out_run / CONFIG
