@@ -132,6 +132,11 @@ def test_the_label_gate_writes_true_labels_and_refuses_wrong_ones(tmp_path):
     off = label_scene(raw, tmp_path / "off", frames, wrong, models, LabelConfig(workers=1, gate=False),
                       progress=False)
     assert off["labelled"] == 4
+    # with the gate on again, without reuse every frame is judged again: the wrong labels go
+    again = label_scene(raw, tmp_path / "off", frames, wrong, models, LabelConfig(workers=1), progress=False,
+                        reuse=False)
+    assert again["labelled"] == 0 and again["gate"]["frames_refused"] == 4 and sorted(again["removed"]) == [0, 1, 2, 3]
+    assert not list((tmp_path / "off" / "rgb").glob("*.png")) and read_json(tmp_path / "off" / "scene_gt.json") == {}
 
 
 # ------------------------------------------------------------------------------------- the lock

@@ -510,7 +510,7 @@ def _stats(x: list[float]) -> dict:
 def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                 placements: Iterable[tuple[int, np.ndarray]], models: Mapping[int, tuple[np.ndarray, np.ndarray]],
                 cfg: LabelConfig = LabelConfig(), skip: Any = (), progress: bool = True,
-                samples: Mapping[int, np.ndarray] | None = None) -> dict:
+                samples: Mapping[int, np.ndarray] | None = None, reuse: bool = True) -> dict:
     """Label every frame of the transparent phase of a raw session into the BOP scene ``out_dir``.
 
     T_ref_frames: {(arm, step): (4,4)} camera of frame (arm, step) -> reference camera (arm 0,
@@ -524,6 +524,8 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         ``RegistrationResult.flagged_frames()`` lists them) or {(arm, step): reason}.
     samples: {obj_id: (N,3) mm} Monte-Carlo surface samples for far_to_near; None = ``cfg.samples``
         area-uniform samples of each mesh (seed 0), drawn in each worker when needed.
+    reuse: keep a frame whose files and labels on disk are already the ones this run would write
+        (False: label every frame again, e.g. when the label gate's options changed since).
 
     Returns a summary: ``frames`` (planned), ``labelled``, ``already_done``, ``skipped``
     ([{im_id, arm, step, reason}]), ``removed`` (im_ids whose earlier labels were removed because
@@ -598,7 +600,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
             files_ok = (all(name in listing[d] for d in ("rgb", "depth", "depth_restored"))
                         and (not has_opaque or name in listing["depth_opaque"])
                         and all(f"{im_id:06d}_{g:06d}.png" in listing[d] for d in MASK_DIRS for g in range(n)))
-            if files_ok and js.has(im_id):
+            if reuse and files_ok and js.has(im_id):
                 camd = {"cam_K": K_flat, "depth_scale": float(cam.depth_scale),
                         "cam_R_w2c": T_frame_ref[:3, :3].reshape(-1), "cam_t_w2c": T_frame_ref[:3, 3]}
                 if _same_labels(js, im_id, camd, [(o, T_frame_ref @ Tm) for o, Tm in places]):

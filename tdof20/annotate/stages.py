@@ -350,14 +350,19 @@ def _label(ctx: StageContext) -> dict:
     obj_ids = sorted({int(p["obj_id"]) for p in pl})
     models = load_meshes(ctx.out / "models", obj_ids)
     info = ctx.session.info
+    # labels kept from an earlier run passed the gate they met then: with other gate options
+    # every frame is judged (and labelled) again
+    gate = {k: v for k, v in ctx.cfg.label.to_dict().items() if k.startswith("gate")}
+    old = ctx.out / "scene_info.json"
+    reuse = old.exists() and read_json(old).get("label_gate") == gate
     write_json(ctx.out / "scene_info.json", {
         "scene_id": info.scene_id, "n_arms": info.n_arms, "steps": info.steps, "step_deg": info.step_deg,
         "labels": "tdof20 annotate (registered opaque depth, placed models)",
-        "source_session": str(ctx.raw.resolve()), "label_method": ctx.cfg.label.method,
+        "source_session": str(ctx.raw.resolve()), "label_method": ctx.cfg.label.method, "label_gate": gate,
         "objects": [{"gt_id": p["gt_id"], "obj_id": p["obj_id"], "source": p["source"]} for p in pl]})
     T_ref_frames = {(f.arm, f.step): f.T_ref_frame for f in reg.frames}
     summary = label_scene(ctx.raw, ctx.out, T_ref_frames, [(int(p["obj_id"]), T_arr(p["T_ref_model"])) for p in pl],
-                          models, ctx.cfg.label, skip=reg.flagged_frames(), progress=ctx.progress)
+                          models, ctx.cfg.label, skip=reg.flagged_frames(), progress=ctx.progress, reuse=reuse)
     write_json(ctx.label_file, summary)
     if summary["labelled"] + summary["already_done"] == 0:
         first = "; ".join(sorted({s["reason"] for s in summary["skipped"]})[:3])
