@@ -193,7 +193,7 @@ def test_temporary_files_of_a_killed_run_are_removed_on_resume(tmp_path):
     out = tmp_path / "scene"
     annotate(raw, out, stages="register", cfg=CFG, progress=False)
     (out / "mask").mkdir()
-    stale = [out / "mask" / ".000000_000000.png.k2j3.tmp", out / "work" / ".registration.json.x1.tmp",
+    stale = [out / "mask" / ".000000_000000.png.k2j3ab9_.tmp", out / "work" / ".registration.json.x1yz0q8w.tmp",
              out / "work" / "reconstruction" / "scene_mesh.tmp.ply"]
     stale[-1].parent.mkdir(parents=True)
     for p in stale:

@@ -15,7 +15,8 @@ from tdof20.capture import run_capture, sim_config, verify_session
 from tdof20.capture.rig import build_rig
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_journal, read_session, sha256_file
-from tdof20.formats.session import depth_units_problem, frame_size_problem, stale_temp_files
+from tdof20.formats.io import stale_temp_files
+from tdof20.formats.session import depth_units_problem, frame_size_problem
 
 W, H = 64, 48
 EXE = [sys.executable, "-m", "tdof20.cli"]

@@ -25,6 +25,7 @@ from typing import Any
 from tdof20.annotate.config import jsonable
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
+from tdof20.formats.io import stale_temp_files
 
 __all__ = ["STATE_FORMAT", "STATE_VERSION", "WORK", "FolderLock", "StateFile", "clear_scene", "count_files",
            "dir_hash", "remove_stale_temp_files", "session_identity", "sha_file", "sha_obj"]
@@ -164,12 +165,10 @@ def clear_scene(out: Path) -> None:
 
 
 def remove_stale_temp_files(out: Path) -> int:
-    """Delete the temporary files an interrupted run left in ``out`` (atomic writes' ``.NAME.*.tmp``,
-    the mesh's ``*.tmp.ply``); only called while this run holds the folder's lock."""
-    n = 0
-    for root, _dirs, files in os.walk(out):
-        for name in files:
-            if (name.startswith(".") and name.endswith(".tmp")) or name.endswith(".tmp.ply"):
-                Path(root, name).unlink(missing_ok=True)
-                n += 1
-    return n
+    """Delete the temporary files an interrupted run left in ``out`` (atomic writes'
+    ``.NAME.<8 chars>.tmp``, :func:`tdof20.formats.io.stale_temp_files`; the fused mesh's
+    ``*.tmp.ply``); only called while this run holds the folder's lock."""
+    stale = stale_temp_files(out) + sorted(p for p in Path(out).rglob("*.tmp.ply") if p.is_file())
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return len(stale)

@@ -217,13 +217,14 @@ class Clusters:
         return np.ascontiguousarray(self.c.T, dtype=np.float32)
 
 
-def make_clusters(P: np.ndarray, leaf: int) -> Clusters:
-    """Split ``P`` (N,3) recursively at the median of its longest box side into clusters of at
-    most ``leaf`` points (all segments of a level split at once)."""
-    P = _pts(P)
+def _median_splits(P: np.ndarray, leaf: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Split ``P`` (N,3) level by level, every segment longer than ``leaf`` at the median of its
+    longest box side. Returns the point order and the segment bounds of every level (the first
+    ``[0, N]``, the last the leaves) into it."""
     N = len(P)
     order = np.arange(N)
     cuts = np.array([0, N])
+    history = [cuts]
     while True:
         starts, sizes = cuts[:-1], np.diff(cuts)
         split = sizes > leaf
@@ -235,6 +236,17 @@ def make_clusters(P: np.ndarray, leaf: int) -> Clusters:
         key = X[np.arange(N), np.argmax(ext, axis=1)[seg]]
         order = order[np.lexsort((key, seg))]
         cuts = np.sort(np.concatenate([cuts, starts[split] + sizes[split] // 2]))
+        history.append(cuts)
+    return order, history
+
+
+def make_clusters(P: np.ndarray, leaf: int) -> Clusters:
+    """Split ``P`` (N,3) recursively at the median of its longest box side into clusters of at
+    most ``leaf`` points (all segments of a level split at once)."""
+    P = _pts(P)
+    N = len(P)
+    order, history = _median_splits(P, leaf)
+    cuts = history[-1]
     M = len(cuts) - 1
     label = np.empty(N, dtype=np.int64)
     label[order] = np.repeat(np.arange(M), np.diff(cuts))
@@ -1179,22 +1191,7 @@ def _spread_points(P: np.ndarray, k: int) -> np.ndarray:
 
 def make_point_tree(P: np.ndarray, first: int = 32, branching: int = 2) -> PointTree:
     P = _pts(P)
-    N = len(P)
-    order = np.arange(N)
-    cuts = np.array([0, N])
-    history = [cuts]
-    while True:
-        starts, sizes = cuts[:-1], np.diff(cuts)
-        split = sizes > 1
-        if not split.any():
-            break
-        seg = np.repeat(np.arange(len(sizes)), sizes)
-        X = P[order]
-        ext = np.maximum.reduceat(X, starts) - np.minimum.reduceat(X, starts)
-        key = X[np.arange(N), np.argmax(ext, axis=1)[seg]]
-        order = order[np.lexsort((key, seg))]
-        cuts = np.sort(np.concatenate([cuts, starts[split] + sizes[split] // 2]))
-        history.append(cuts)
+    order, history = _median_splits(P, 1)
     D = len(history) - 1
     step = max(1, int(round(np.log2(branching))))
     d0 = min(D, max(0, int(np.ceil(np.log2(max(1, first))))))

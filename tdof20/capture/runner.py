@@ -31,7 +31,8 @@ from tdof20.capture.plan import check_workspace, session_info
 from tdof20.capture.rig import Rig, build_rig
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, SessionInfo, read_session, write_frame, write_session
-from tdof20.formats.session import SESSION_FILE, TEMP_FILE_RE, depth_units_problem, stale_temp_files
+from tdof20.formats.io import TEMP_FILE_RE, stale_temp_files
+from tdof20.formats.session import SESSION_FILE, depth_units_problem
 from tdof20.progress import console, progress
 
 T = TypeVar("T")

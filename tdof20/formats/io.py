@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import struct
 import tempfile
 import zlib
@@ -55,6 +56,18 @@ def atomic_write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> No
         except FileNotFoundError:
             pass
         raise
+
+
+# the temporary files atomic_write_bytes makes (mkstemp: 8 characters of [a-z0-9_])
+TEMP_FILE_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")
+
+
+def stale_temp_files(dir: str | Path) -> list[Path]:
+    """The unfinished atomic writes (``.{name}.<8 random characters>.tmp`` files) anywhere under a
+    folder, sorted: what a killed writer left. Only files of exactly that pattern; nothing is
+    removed here (the caller does, while it holds the folder)."""
+    root = Path(dir)
+    return sorted(p for p in root.rglob(".*.tmp") if TEMP_FILE_RE.match(p.name) and p.is_file())
 
 
 def _json_default(o: Any) -> Any:

@@ -629,16 +629,6 @@ def read_journal(dir: str | Path) -> list[JournalEntry]:
 # what tdof20.formats.io.atomic_write_bytes leaves behind when it is killed between creating its
 # temporary file and renaming it: tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp"), whose
 # random part is 8 characters of [a-z0-9_]
-TEMP_FILE_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")
-
-
-def stale_temp_files(dir: str | Path) -> list[Path]:
-    """The unfinished atomic writes (``.{name}.<8 random characters>.tmp`` files) anywhere under a
-    session folder, sorted. Only files of exactly that pattern; nothing is removed here."""
-    root = Path(dir)
-    return sorted(p for p in root.rglob(".*.tmp") if TEMP_FILE_RE.match(p.name) and p.is_file())
-
-
 # ---------------------------------------------------------------------------------------------
 # writing a frame
 # ---------------------------------------------------------------------------------------------
@@ -878,5 +868,5 @@ __all__ = [
     "FORMAT", "VERSION", "SESSION_FILE", "JOURNAL_FILE", "TRUTH_DIR", "PHASES", "SCENE_ID_RE",
     "ArmPosition", "SessionInfo", "JournalEntry", "RawSession", "frame_paths", "write_session",
     "read_session", "append_journal", "read_journal", "write_frame", "frame_size_problem",
-    "depth_units_problem", "stale_temp_files", "TEMP_FILE_RE", "DEPTH_PLAUSIBLE_MM",
+    "depth_units_problem", "DEPTH_PLAUSIBLE_MM",
 ]
