@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 import pytest
+
+from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED
 import trimesh
 from scipy.spatial import ConvexHull, cKDTree
 
@@ -249,8 +251,7 @@ def test_keypoints(obj_id):
     assert np.all(_dist_to_mesh(obj_id, kp[1:]) < 1e-2)  # on the surface
     d = np.linalg.norm(kp[:, None] - kp[None], axis=-1)[np.triu_indices(9, 1)]
     assert d.min() > 0.1 * m.diameter  # spread out
-    again = farthest_point_sampling(m.sample_surface(catalog.N_KEYPOINT_SAMPLES, catalog.KEYPOINT_SEED), 9,
-                                    first=m.centre)
+    again = farthest_point_sampling(m.sample_surface(KEYPOINT_SAMPLES, KEYPOINT_SEED), 9, first=m.centre)
     assert np.allclose(again, kp)  # reproducible
 
 

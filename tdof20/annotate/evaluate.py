@@ -119,7 +119,7 @@ class _Model:
     once in its model frame."""
 
     def __init__(self, V: np.ndarray, F: np.ndarray, n_points: int, seed: int, distance: str):
-        from tdof20.objects.catalog import sample_mesh_surface
+        from tdof20.geometry.sampling import sample_mesh_surface
 
         self.V, self.F = V, F
         self.centre = model_centre(V)

@@ -237,7 +237,7 @@ class _LabelJob:
             if self.samples is not None:
                 st.samples = {int(k): np.asarray(v, np.float64) for k, v in self.samples.items()}
             else:
-                from tdof20.objects.catalog import sample_mesh_surface
+                from tdof20.geometry.sampling import sample_mesh_surface
 
                 n = self.cfg.samples or auto_samples(st.camera)
                 st.samples = {o: sample_mesh_surface(v, f, n, seed=0) for o, (v, f) in self.models.items()}

@@ -60,7 +60,7 @@ Models folder (:func:`write_models`), every file written atomically::
                                     uchar-int vertex_indices (trimesh and bop_toolkit read it)
     models/models_info.json         BOP: diameter, min_x.., size_x.., symmetries (+ "source", ...)
     models/keypoints.json           {"<obj_id>": 9x3 mm}: the bounding-box centre, then 8 farthest
-                                    points of surface samples (tdof20.methods.data.mesh_keypoints,
+                                    points of surface samples (tdof20.objects.keypoints.surface_keypoints,
                                     so it equals what the network's loader computes from the PLY)
     models/obj_{id:06d}_samples.npy (n_samples,3) float32 mm, Monte-Carlo area-uniform samples
 """
@@ -79,7 +79,9 @@ from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.geometry import rotation_matrix
 from tdof20.o3d import o3d
-from tdof20.objects.catalog import mesh_diameter, sample_mesh_surface
+from tdof20.geometry.sampling import sample_mesh_surface
+from tdof20.objects.catalog import mesh_diameter
+from tdof20.objects.keypoints import surface_keypoints
 
 KEYPOINTS_FILE = "keypoints.json"
 
@@ -131,17 +133,15 @@ class BuiltModel:
 # ------------------------------------------------------------------------------------------
 def sample_points(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """(n,3) Monte-Carlo area-uniform surface samples, deterministic in ``seed`` (the catalog's
-    sampler, :func:`tdof20.objects.catalog.sample_mesh_surface`)."""
+    sampler, :func:`tdof20.geometry.sampling.sample_mesh_surface`)."""
     return sample_mesh_surface(vertices, faces, n, seed)
 
 
 def model_keypoints(vertices: np.ndarray, faces: np.ndarray, k: int = 9, seed: int = 0) -> np.ndarray:
     """(k,3): the bounding-box centre, then k-1 farthest-point samples of the surface — the
-    network's own definition (:func:`tdof20.methods.data.mesh_keypoints`, 10000 samples), so
-    the keypoints written with a model are those its loader recomputes from the PLY."""
-    from tdof20.methods.data import KEYPOINT_SAMPLES, mesh_keypoints  # imports torch: only here
-
-    return mesh_keypoints(vertices, faces, k=k, n_samples=KEYPOINT_SAMPLES, seed=seed)
+    project's one definition (:func:`tdof20.objects.keypoints.surface_keypoints`), so the
+    keypoints written with a model are those any loader recomputes from the PLY."""
+    return surface_keypoints(vertices, faces, k=k, seed=seed)
 
 
 # ------------------------------------------------------------------------------------------

@@ -241,7 +241,7 @@ class _Points:
     def __call__(self, obj_id: int) -> np.ndarray | None:
         if obj_id not in self.cache:
             from tdof20.formats.bop import model_path, read_model_mesh
-            from tdof20.objects.catalog import sample_mesh_surface
+            from tdof20.geometry.sampling import sample_mesh_surface
 
             path = model_path(self.dir, obj_id)
             pts = None

@@ -1,4 +1,4 @@
-"""Farthest point sampling (keypoints) of a point set."""
+"""Surface sampling of triangle meshes and farthest point sampling of point sets."""
 
 from __future__ import annotations
 
@@ -31,3 +31,19 @@ def farthest_point_sampling(points: np.ndarray, k: int, first: np.ndarray | None
         chosen.append(pts[i])
         dist = np.minimum(dist, np.linalg.norm(pts - pts[i], axis=1))
     return np.stack(chosen)
+
+
+def sample_mesh_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Monte-Carlo area-uniform surface samples (n,3) of a triangle mesh, deterministic in seed."""
+    V = np.asarray(vertices, dtype=np.float64)
+    tri = V[np.asarray(faces)]
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    cum = np.cumsum(area)
+    rng = np.random.default_rng(seed)
+    idx = np.searchsorted(cum, rng.random(int(n)) * cum[-1], side="right")
+    idx = np.minimum(idx, len(area) - 1)
+    u, v = rng.random((2, int(n)))
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    return a[idx] + u[:, None] * (b[idx] - a[idx]) + v[:, None] * (c[idx] - a[idx])

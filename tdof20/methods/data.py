@@ -37,14 +37,12 @@ import torch.nn.functional as F
 
 from tdof20.errors import TdofError
 from tdof20.methods.hff6dof import fill_depth_holes, geometry_map
+from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED, N_KEYPOINTS, surface_keypoints
 
 DEPTH_MODES = ("raw", "filled", "restored")
 #: the input depth used unless told otherwise (the result of the comparison in docs/hff6dof.md)
 DEFAULT_DEPTH_MODE = "filled"
 N_CLASSES = 21          # background + 20 objects; the class of a pixel is its obj_id
-N_KEYPOINTS = 9
-KEYPOINT_SAMPLES = 10000
-KEYPOINT_SEED = 0
 
 
 def check_depth_mode(mode: str) -> str:
@@ -80,21 +78,6 @@ def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: 
 # keypoints
 
 
-def mesh_keypoints(vertices: np.ndarray, faces: np.ndarray, k: int = N_KEYPOINTS,
-                   n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> np.ndarray:
-    """(k,3): the centre of the model's bounding box, then k-1 farthest-point samples of
-    ``n_samples`` Monte-Carlo (area-uniform) samples of its surface. Deterministic in ``seed``."""
-    import trimesh
-
-    from tdof20.geometry import farthest_point_sampling
-
-    V = np.asarray(vertices, dtype=np.float64)
-    mesh = trimesh.Trimesh(vertices=V, faces=np.asarray(faces), process=False)
-    samples, _ = trimesh.sample.sample_surface(mesh, int(n_samples), seed=int(seed))
-    centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
-    return farthest_point_sampling(np.asarray(samples), k, first=centre)
-
-
 def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None, k: int = N_KEYPOINTS,
                     n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
     """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_{id:06d}.ply``,
@@ -107,7 +90,7 @@ def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None
     out = {}
     for obj_id in ids:
         V, F = read_model_mesh(model_path(models_dir, obj_id))  # keypoints are sampled on the surface
-        out[obj_id] = mesh_keypoints(V, F, k, n_samples, seed)
+        out[obj_id] = surface_keypoints(V, F, k, n_samples, seed)
     return out
 
 

@@ -26,11 +26,10 @@ from scipy.spatial.distance import cdist
 from tdof20.errors import TdofError
 from tdof20.formats.bop import model_path, write_model_mesh
 from tdof20.formats.io import write_json
-from tdof20.geometry import farthest_point_sampling
+from tdof20.geometry.sampling import sample_mesh_surface
 from tdof20.objects import shapes as S
+from tdof20.objects.keypoints import surface_keypoints
 
-N_KEYPOINT_SAMPLES = 5000
-KEYPOINT_SEED = 20
 
 
 # ------------------------------------------------------------------------------------------
@@ -104,22 +103,6 @@ class ObjectModel:
             info["symmetries_discrete"] = [[float(x) for x in np.asarray(T).reshape(-1)]
                                            for T in self.symmetries_discrete]
         return info
-
-
-def sample_mesh_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """Monte-Carlo area-uniform surface samples (n,3) of a triangle mesh, deterministic in seed."""
-    V = np.asarray(vertices, dtype=np.float64)
-    tri = V[np.asarray(faces)]
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    cum = np.cumsum(area)
-    rng = np.random.default_rng(seed)
-    idx = np.searchsorted(cum, rng.random(int(n)) * cum[-1], side="right")
-    idx = np.minimum(idx, len(area) - 1)
-    u, v = rng.random((2, int(n)))
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    return a[idx] + u[:, None] * (b[idx] - a[idx]) + v[:, None] * (c[idx] - a[idx])
 
 
 def max_pairwise_distance(points: np.ndarray, chunk: int = 1024) -> float:
@@ -424,9 +407,7 @@ def _build(obj_id: int) -> ObjectModel:
         V, F = np.array(mesh[0], dtype=np.float64), np.array(mesh[1], dtype=np.int64)
     V[:, 2] -= 0.5 * (V[:, 2].min() + V[:, 2].max())  # origin at mid-height, on the body axis
     V, F = S.orient_outward(V, F)
-    centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
-    samples = sample_mesh_surface(V, F, N_KEYPOINT_SAMPLES, KEYPOINT_SEED)
-    keypoints = farthest_point_sampling(samples, 9, first=centre)
+    keypoints = surface_keypoints(V, F)
     if spec.symmetry == CONT:
         cont, disc = _CONTINUOUS_Z, ()
     elif isinstance(spec.symmetry, int):
