@@ -1,0 +1,282 @@
+"""`tdof20 dataset import-tdof20`: the released TDoF20 layout (written by the independent fixture of
+tests/fixtures/tdof20_release.py from the README alone) imported as a tdof20 dataset."""
+
+import json
+import pickle
+import pickletools
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from tdof20.benchmark import importer
+from tdof20.benchmark.importer import import_tdof20
+from tdof20.errors import TdofError
+from tdof20.formats import read_json, read_png, read_scene
+from tdof20.formats.tdof20_release import load_pickle
+from tests.fixtures.tdof20_release import write_tdof20_release
+
+SMALL = dict(classes=("cube_136", "goblet_180"), multi=("02",), frames_per_scene=3)
+LIST_KEYS = {"simple_train": "train_data_list.txt", "simple_test": "test_data_list.txt",
+             "hard_train": "hard_train_data_list.txt", "hard_test": "hard_test_data_list.txt"}
+
+
+def _ids(w, out):
+    """{fixture frame key: (scene_id, im_id)} through the dataset's own scene names."""
+    info = read_json(out / "dataset_info.json")
+    by_name = {v: int(k) for k, v in info["scenes"].items()}
+    res = {}
+    for key, f in w["frames"].items():
+        name = f"single/{f['scene']}" if f["kind"] == "single" else f"multi/{f['scene']}"
+        res[key] = (by_name[name], int(f["stem"]))
+    return res
+
+
+def _check_poses(w, out):
+    ids = _ids(w, out)
+    for key, f in w["frames"].items():
+        sid, im = ids[key]
+        sc = read_scene(out / "scenes" / f"{sid:06d}")
+        assert [g["obj_id"] for g in sc.gt[im]] == [i["cls_id"] for i in f["instances"]]
+        for gid, inst in enumerate(f["instances"]):
+            R, t = sc.pose(im, gid)
+            np.testing.assert_allclose(R, inst["R"], atol=1e-6)
+            np.testing.assert_allclose(t, inst["t_mm"], atol=1e-6)
+
+
+def test_check_prints_what_it_found_and_writes_nothing(tmp_path):
+    w = write_tdof20_release(tmp_path / "src")
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "tdof20.cli", "dataset", "import-tdof20", str(tmp_path / "src"),
+                          "--out", str(out), "--check"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    text = " ".join(res.stdout.split())
+    for name, n in w["counts"].items():
+        row = {"train_data_list.txt": "train", "test_data_list.txt": "test", "hard_train_data_list.txt": "hard_train",
+               "hard_test_data_list.txt": "hard_test", "visual_data_list.txt": "visual"}[name]
+        assert f"{row} │ {name} │ {n} │" in text, (row, text)
+    assert "poses in m" in text and "model in m, diameter in m" in text and "cube_136, goblet_180, handle_cup_280" in text
+    assert "single/cube_136 │ 1 │ 6" in text and "multi/02 │ 23 │ 6" in text
+    assert "checked: nothing written" in res.stderr
+    assert not out.exists()
+
+
+def test_import_splits_poses_masks_depths_keypoints(tmp_path):
+    w = write_tdof20_release(tmp_path / "src")
+    out = tmp_path / "out"
+    s = import_tdof20(tmp_path / "src", out, show_progress=False)
+    assert s["written"] and not (out / importer.MARKER).exists()
+    info = read_json(out / "dataset_info.json")
+    assert info["source"] == "tdof20-release" and set(info["depth_modes"]) == {"raw", "stabilized", "restored"}
+    assert info["scenes"] == {"1": "single/cube_136", "2": "single/goblet_180", "3": "single/handle_cup_280",
+                              "21": "multi/00", "23": "multi/02"}
+    ids = _ids(w, out)
+    # splits exactly from the lists
+    for split, fname in LIST_KEYS.items():
+        want = {}
+        for key in w["lists"][fname]:
+            sid, im = ids[key]
+            want.setdefault(str(sid), []).append(im)
+        assert read_json(out / "splits" / f"{split}.json") == {k: sorted(v) for k, v in want.items()}
+    visual = read_json(out / "splits" / "visual.json")
+    assert sum(len(v) for v in visual.values()) == w["counts"]["visual_data_list.txt"]
+    targets = read_json(out / "test_targets_hard.json")
+    assert {(t["scene_id"], t["im_id"]) for t in targets} <= {ids[k] for k in w["lists"]["hard_test_data_list.txt"]}
+    _check_poses(w, out)
+    for key, f in w["frames"].items():
+        sid, im = ids[key]
+        d = out / "scenes" / f"{sid:06d}"
+        src = tmp_path / "src" / key.rsplit("/", 1)[0]
+        stem = f["stem"]
+        assert (d / "rgb" / f"{im:06d}.jpg").read_bytes() == (src / "rgb" / f"{stem}.jpg").read_bytes()
+        assert np.array_equal(read_png(d / "depth" / f"{im:06d}.png"), read_png(src / "broken_depth" / f"{stem}.png"))
+        stab = read_png(src / "depth" / f"{stem}.png")
+        assert np.array_equal(read_png(d / "depth_stabilized" / f"{im:06d}.png"), stab)
+        cmask = cv2.imread(str(src / "mask" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        gt_info = read_json(d / "scene_gt_info.json")[str(im)]
+        restored = read_png(d / "depth_restored" / f"{im:06d}.png").astype(float)
+        for gid, inst in enumerate(f["instances"]):
+            vis = read_png(d / "mask_visib" / f"{im:06d}_{gid:06d}.png") > 0
+            assert np.array_equal(vis, cmask == inst["cls_id"])            # visible = the class-id mask
+            full = read_png(d / "mask" / f"{im:06d}_{gid:06d}.png") > 0
+            assert (full | vis).sum() == full.sum() and full.sum() >= vis.sum()
+            assert abs(int(full.sum()) - inst["px_all"]) <= max(3, 0.05 * inst["px_all"])  # rendered silhouette
+            assert gt_info[gid]["px_count_visib"] == inst["px_visib"]
+            # restored depth = the models' surface where they are seen (the fixture's exact render)
+            np.testing.assert_allclose(restored[vis], f["depth_mm"][vis], atol=1.0)
+    kps = read_json(out / "models" / "keypoints.json")
+    info_m = read_json(out / "models" / "models_info.json")
+    for name, cid in w["class_ids"].items():
+        kp = np.asarray(kps[str(cid)])
+        assert kp.shape == (9, 3)
+        np.testing.assert_allclose(kp[1:], w["farthest_mm"][name], atol=1e-3)   # the released 8, in mm
+        assert np.abs(kp[0]).max() < 1e-3                                    # the bbox centre (fixture: origin)
+        assert info_m[str(cid)]["diameter"] == pytest.approx(w["diameters_mm"][name], abs=1e-3)
+    assert "symmetries_discrete" in info_m["1"] and "symmetries_continuous" in info_m["2"]
+    assert "symmetries_continuous" not in info_m["3"] and "symmetries_discrete" not in info_m["3"]
+    # the dataset tools read it
+    from tdof20.benchmark.dataset import stats
+    st = stats(out)
+    assert st["splits"]["simple_train"] == w["counts"]["train_data_list.txt"]
+    assert st["splits"]["hard_test"] == w["counts"]["hard_test_data_list.txt"]
+
+
+@pytest.mark.parametrize("pose_units,model_units,diameter_units", [("m", "mm", "mm"), ("mm", "m", "m"),
+                                                                   ("mm", "mm", "mm"), ("m", "m", "mm")])
+def test_units_are_detected_and_converted(tmp_path, pose_units, model_units, diameter_units):
+    w = write_tdof20_release(tmp_path / "src", pose_units=pose_units, model_units=model_units,
+                             diameter_units=diameter_units, **SMALL)
+    s = import_tdof20(tmp_path / "src", tmp_path / "out", show_progress=False)
+    assert s["units"]["poses"].startswith(f"poses in {pose_units} ")
+    assert all(v.startswith(f"model in {model_units}, diameter in {diameter_units}")
+               for v in s["units"]["models"].values())
+    _check_poses(w, tmp_path / "out")
+    from tdof20.formats import read_model_mesh
+    for name, cid in w["class_ids"].items():
+        V, _ = read_model_mesh(tmp_path / "out" / "models" / f"obj_{cid:06d}.ply")
+        assert np.ptp(V, axis=0).max() == pytest.approx(w["diameters_mm"][name], rel=0.5)  # mm, not m
+
+
+def _one_line(e, *needles):
+    msg = str(e.value)
+    assert "\n" not in msg
+    for n in needles:
+        assert n in msg, msg
+
+
+def test_ambiguous_or_wrong_units_are_refused(tmp_path):
+    w = write_tdof20_release(tmp_path / "src", **SMALL)
+    out = tmp_path / "out"
+    # one frame's pose in mm among poses in m
+    key = next(iter(w["frames"]))
+    pkl = tmp_path / "src" / key.replace(f"/{w['frames'][key]['stem']}", f"/pose/{w['frames'][key]['stem']}.pkl")
+    d = load_pickle(pkl)
+    d["poses"][:, 3] *= 1000.0
+    d["center_3ds"] *= 1000.0
+    pkl.write_bytes(pickle.dumps(d))
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "src", out, show_progress=False)
+    _one_line(e, str(pkl), "poses are in mm", "one unit")
+    # translations of 20 (neither m nor mm from a camera)
+    d["poses"][:, 3] *= 20.0 / np.linalg.norm(d["poses"][:, 3], axis=0)
+    pkl.write_bytes(pickle.dumps(d))
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "src", out, show_progress=False)
+    _one_line(e, str(pkl), "ambiguous")
+    # a diameter that fits the model neither in m nor in mm
+    w = write_tdof20_release(tmp_path / "src2", **SMALL)
+    dia = tmp_path / "src2" / "diameters" / "goblet_180_diameter.txt"
+    dia.write_text(f"{float(dia.read_text()) * 3:.6f}\n")
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "src2", out, check=True, show_progress=False)
+    _one_line(e, "goblet_180.ply", "goblet_180_diameter.txt", "neither in mm nor in m")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("variant,needle", [
+    ({"missing_list": "train_data_list.txt"}, ("train_data_list.txt", "list file not found")),
+    ({"pkl_drop_keys": ("poses",)}, ("pose/000000.pkl", "has no 'poses'")),
+    ({"bad_cls_id": True}, ("cube_136/pose/000000.pkl", "class id 3 is not in classes.txt")),
+    ({"classes_txt": ["cube_136"]}, ("single_data/goblet_180", "not a class of classes.txt")),
+    ({"drop_file": ("broken_depth", 1)}, ("_data_list.txt: line", "has no broken_depth/000001.png")),
+])
+def test_bad_release_one_line_naming_the_file(tmp_path, variant, needle):
+    write_tdof20_release(tmp_path / "src", **SMALL, **variant)
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "src", out, show_progress=False)
+    _one_line(e, *needle)
+    assert list(out.iterdir()) == []
+
+
+def test_cli_error_is_one_line(tmp_path):
+    write_tdof20_release(tmp_path / "src", **SMALL, pkl_drop_keys=("poses",))
+    res = subprocess.run([sys.executable, "-m", "tdof20.cli", "dataset", "import-tdof20", str(tmp_path / "src"),
+                          "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:") and "has no 'poses'" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("variant", [{"list_form": "short"}, {"list_form": "rgb_path"},
+                                     {"visual_name": "visual_data.txt", "intrinsics_form": "K"},
+                                     {"pose_layout": "Nx3x4", "cls_ids_shape": "column", "extra_pkl_keys": True},
+                                     {"depth_scale": 0.5, "ply_encoding": "binary"}])
+def test_documented_variants_are_read(tmp_path, variant):
+    w = write_tdof20_release(tmp_path / "src", **SMALL, **variant)
+    s = import_tdof20(tmp_path / "src", None, check=True, show_progress=False)
+    names = {"train_data_list.txt": "train", "test_data_list.txt": "test", "hard_train_data_list.txt": "hard_train",
+             "hard_test_data_list.txt": "hard_test", w["visual_name"]: "visual"}
+    assert s["lists"] == {names[k]: n for k, n in w["counts"].items()}
+    assert s["units"]["depth"] == f"{variant.get('depth_scale', 1.0):g} mm per unit"
+    assert min(s["mask_iou_first_frame"].values()) > 0.9
+
+
+def _py2_pickle(obj) -> bytes:
+    """A pickle as Python 2 writes it: byte strings as (SHORT_)BINSTRING, which Python 3 only
+    reads with encoding='latin1'."""
+    data = bytearray(pickle.dumps(obj, protocol=3))
+    for op, _, pos in pickletools.genops(bytes(data)):
+        if op.name == "SHORT_BINBYTES":
+            data[pos] = ord("U")
+        elif op.name == "BINBYTES":
+            data[pos] = ord("T")
+    return bytes(data)
+
+
+def test_python2_pickles_load(tmp_path):
+    w = write_tdof20_release(tmp_path / "src", **SMALL)
+    n = 0
+    for key, f in w["frames"].items():
+        p = tmp_path / "src" / key.rsplit("/", 1)[0] / "pose" / f"{f['stem']}.pkl"
+        d = pickle.loads(p.read_bytes())
+        raw = _py2_pickle(d)
+        if n == 0:
+            with pytest.raises(UnicodeDecodeError):
+                pickle.loads(raw)   # really a Python 2 pickle: Python 3's default encoding refuses it
+        p.write_bytes(raw)
+        n += 1
+    w2 = import_tdof20(tmp_path / "src", tmp_path / "out", show_progress=False)
+    assert w2["written"]
+    _check_poses(w, tmp_path / "out")
+
+
+def test_interrupted_import_resumes(tmp_path, monkeypatch):
+    write_tdof20_release(tmp_path / "src", **SMALL)
+    ref = tmp_path / "ref"
+    import_tdof20(tmp_path / "src", ref, show_progress=False)
+    out = tmp_path / "out"
+    calls = {"n": 0}
+    real = importer.read_class_mask
+
+    def dying(path):
+        calls["n"] += 1
+        if calls["n"] == 3 + 5:  # 3 scene pre-checks, then the 5th frame (scene 2, frame 2)
+            raise KeyboardInterrupt
+        return real(path)
+
+    monkeypatch.setattr(importer, "read_class_mask", dying)
+    monkeypatch.setattr(importer, "FLUSH_EVERY", 1)
+    with pytest.raises(KeyboardInterrupt):
+        import_tdof20(tmp_path / "src", out, show_progress=False)
+    assert (out / importer.MARKER).exists() and not (out / "dataset_info.json").exists()
+    assert (out / "scenes" / "000001" / "scene_info.json").exists()
+    assert len(read_json(out / "scenes" / "000002" / "scene_gt.json")) == 1  # one frame of scene 2 kept
+    # another import into it is refused; the same one finishes it
+    write_tdof20_release(tmp_path / "other", **SMALL, seed=1)
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "other", out, show_progress=False)
+    _one_line(e, "unfinished import")
+    monkeypatch.setattr(importer, "read_class_mask", real)
+    s = import_tdof20(tmp_path / "src", out, show_progress=False)
+    assert s["written"] and s["resumed"] and not (out / importer.MARKER).exists()
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file())
+    for p in files:
+        if p.suffix == ".json" and p.name != "dataset_info.json":
+            assert json.loads((out / p).read_text()) == json.loads((ref / p).read_text()), p
+        elif p.suffix in (".png", ".jpg", ".ply"):
+            assert (out / p).read_bytes() == (ref / p).read_bytes(), p
