@@ -1,11 +1,11 @@
-"""ResNet34 encoder with torchvision's exact parameter names (torchvision itself is not used).
+"""ResNet18 / ResNet34 encoders with torchvision's exact parameter names (torchvision itself is not used).
 
-The module tree mirrors ``torchvision.models.resnet34``: ``conv1, bn1, layer1..layer4`` (each a
-Sequential of BasicBlocks with ``conv1, bn1, conv2, bn2`` and ``downsample.0`` / ``downsample.1``
-where the shape changes) and, optionally, ``fc``. A torchvision checkpoint therefore loads with
-:func:`load_torchvision_state_dict`, from a path the user gives (nothing is downloaded).
+The module tree mirrors ``torchvision.models.resnet18`` / ``resnet34``: ``conv1, bn1, layer1..layer4``
+(each a Sequential of BasicBlocks with ``conv1, bn1, conv2, bn2`` and ``downsample.0`` /
+``downsample.1`` where the shape changes) and, optionally, ``fc``. A torchvision checkpoint therefore
+loads with :func:`load_torchvision_state_dict`, from a path the user gives (nothing is downloaded).
 
-``forward`` returns the five stage feature maps used by HFF6DoF::
+``forward`` returns the five stage feature maps (HFF6DoF, PVNet, PSPNet use them)::
 
     stage   name    stride  channels
     0       stem    2       64      relu(bn1(conv1(x)))   (before the max-pool)
@@ -13,6 +13,14 @@ where the shape changes) and, optionally, ``fc``. A torchvision checkpoint there
     2       layer2  8       128
     3       layer3  16      256
     4       layer4  32      512
+
+``replace_stride_with_dilation=(False, True, True)`` (torchvision's option) keeps layer3 and layer4 at
+stride 8 and dilates their 3x3 convolutions instead (dilation 2 and 4; the first block of a dilated
+layer keeps the previous dilation, as torchvision does): output stride 8, as PVNet and PSPNet use.
+(torchvision's BasicBlock refuses dilation; ours applies it the way torchvision's Bottleneck does.)
+Dilation changes no parameter, so the same checkpoint loads. ``dilate=False`` drops the replaced
+strides without dilating (FFB6D's published extractor behaves so: its layer3/layer4 run at stride 8
+with dilation 1, because its ``_make_layer`` ignores the dilation it is given).
 """
 
 from __future__ import annotations
@@ -28,11 +36,14 @@ from tdof20.errors import TdofError
 STAGE_NAMES = ("stem", "layer1", "layer2", "layer3", "layer4")
 STAGE_CHANNELS = (64, 64, 128, 256, 512)
 STAGE_STRIDES = (2, 4, 8, 16, 32)
+RESNET18_LAYERS = (2, 2, 2, 2)
 RESNET34_LAYERS = (3, 4, 6, 3)
+#: output stride 8: layer3 and layer4 dilated instead of strided (PVNet, PSPNet)
+OUTPUT_STRIDE_8 = (False, True, True)
 
 
-def conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
-    return nn.Conv2d(cin, cout, kernel_size=3, stride=stride, padding=1, bias=False)
+def conv3x3(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, kernel_size=3, stride=stride, padding=dilation, dilation=dilation, bias=False)
 
 
 def conv1x1(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
@@ -44,12 +55,13 @@ class BasicBlock(nn.Module):
 
     expansion = 1
 
-    def __init__(self, cin: int, cout: int, stride: int = 1, downsample: nn.Module | None = None):
+    def __init__(self, cin: int, cout: int, stride: int = 1, downsample: nn.Module | None = None,
+                 dilation: int = 1, first_dilation: int | None = None):
         super().__init__()
-        self.conv1 = conv3x3(cin, cout, stride)
+        self.conv1 = conv3x3(cin, cout, stride, dilation if first_dilation is None else first_dilation)
         self.bn1 = nn.BatchNorm2d(cout)
         self.relu = nn.ReLU(inplace=True)
-        self.conv2 = conv3x3(cout, cout)
+        self.conv2 = conv3x3(cout, cout, dilation=dilation)
         self.bn2 = nn.BatchNorm2d(cout)
         self.downsample = downsample
         self.stride = stride
@@ -61,33 +73,56 @@ class BasicBlock(nn.Module):
         return self.relu(out + identity)
 
 
-class ResNet34(nn.Module):
-    """ResNet34 encoder; ``forward(x (B,C,H,W)) -> [stem, layer1, layer2, layer3, layer4]``.
+class ResNet(nn.Module):
+    """A BasicBlock ResNet encoder; ``forward(x (B,C,H,W)) -> [stem, layer1, layer2, layer3, layer4]``.
 
+    layers: blocks per stage ((2,2,2,2) ResNet18, (3,4,6,3) ResNet34).
     in_channels: 3 for RGB, 6 for the HFF6DoF geometry map (XYZ + normals).
     with_fc: keep torchvision's ``fc`` (512 -> num_classes) and offer :meth:`classify`; the
-    encoder use never needs it, so HFF6DoF builds its encoders without it.
+        encoder use never needs it.
+    replace_stride_with_dilation: for layer2, layer3, layer4 (torchvision's option);
+        :data:`OUTPUT_STRIDE_8` gives output stride 8. ``dilate=False``: drop those strides but keep
+        dilation 1 (FFB6D's extractor as published).
     """
 
-    def __init__(self, in_channels: int = 3, with_fc: bool = False, num_classes: int = 1000):
+    arch = "resnet"
+
+    def __init__(self, layers=RESNET34_LAYERS, in_channels: int = 3, with_fc: bool = False,
+                 num_classes: int = 1000, replace_stride_with_dilation=(False, False, False), dilate: bool = True):
         super().__init__()
         if in_channels < 1:
             raise ValueError(f"in_channels must be >= 1, got {in_channels}")
+        layers = tuple(int(n) for n in layers)
+        rswd = tuple(bool(r) for r in replace_stride_with_dilation)
+        if len(layers) != 4 or min(layers) < 1:
+            raise ValueError(f"layers must be 4 block counts >= 1, got {layers}")
+        if len(rswd) != 3:
+            raise ValueError(f"replace_stride_with_dilation needs 3 flags (layer2..layer4), got {rswd}")
         self.in_channels = in_channels
+        self.layers_config = layers
+        self.replace_stride_with_dilation = rswd
         self.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
-        cin = 64
-        for i, (n_blocks, cout) in enumerate(zip(RESNET34_LAYERS, STAGE_CHANNELS[1:]), start=1):
-            stride = 1 if i == 1 else 2
+        cin, dilation = 64, 1
+        self.stage_strides = [2, 4]
+        for i, (n_blocks, cout) in enumerate(zip(layers, STAGE_CHANNELS[1:]), start=1):
+            stride, prev = (1 if i == 1 else 2), dilation
+            if i > 1 and rswd[i - 2]:
+                if dilate:
+                    dilation *= stride
+                stride = 1
+            if i > 1:
+                self.stage_strides.append(self.stage_strides[-1] * stride)
             downsample = None
             if stride != 1 or cin != cout:
                 downsample = nn.Sequential(conv1x1(cin, cout, stride), nn.BatchNorm2d(cout))
-            blocks = [BasicBlock(cin, cout, stride, downsample)]
-            blocks += [BasicBlock(cout, cout) for _ in range(n_blocks - 1)]
+            blocks = [BasicBlock(cin, cout, stride, downsample, dilation=dilation, first_dilation=prev)]
+            blocks += [BasicBlock(cout, cout, dilation=dilation) for _ in range(n_blocks - 1)]
             setattr(self, f"layer{i}", nn.Sequential(*blocks))
             cin = cout
+        self.stage_strides = tuple(self.stage_strides)
         self.fc = nn.Linear(512, num_classes) if with_fc else None
         self.avgpool = nn.AdaptiveAvgPool2d(1) if with_fc else None
         for m in self.modules():
@@ -96,6 +131,10 @@ class ResNet34(nn.Module):
             elif isinstance(m, nn.BatchNorm2d):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
+
+    @property
+    def output_stride(self) -> int:
+        return self.stage_strides[-1]
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         stem = self.relu(self.bn1(self.conv1(x)))
@@ -108,8 +147,36 @@ class ResNet34(nn.Module):
     def classify(self, x: torch.Tensor) -> torch.Tensor:
         """ImageNet logits (B, num_classes); only with ``with_fc=True``."""
         if self.fc is None:
-            raise RuntimeError("this ResNet34 was built without fc (with_fc=False)")
+            raise RuntimeError(f"this {type(self).__name__} was built without fc (with_fc=False)")
         return self.fc(torch.flatten(self.avgpool(self.forward(x)[-1]), 1))
+
+
+class ResNet18(ResNet):
+    """torchvision's resnet18 layout (11,689,512 parameters with fc)."""
+
+    arch = "resnet18"
+
+    def __init__(self, in_channels: int = 3, with_fc: bool = False, num_classes: int = 1000,
+                 replace_stride_with_dilation=(False, False, False), dilate: bool = True):
+        super().__init__(RESNET18_LAYERS, in_channels, with_fc, num_classes, replace_stride_with_dilation, dilate)
+
+
+class ResNet34(ResNet):
+    """torchvision's resnet34 layout (21,797,672 parameters with fc)."""
+
+    arch = "resnet34"
+
+    def __init__(self, in_channels: int = 3, with_fc: bool = False, num_classes: int = 1000,
+                 replace_stride_with_dilation=(False, False, False), dilate: bool = True):
+        super().__init__(RESNET34_LAYERS, in_channels, with_fc, num_classes, replace_stride_with_dilation, dilate)
+
+
+def resnet(name: str, **kwargs) -> ResNet:
+    """``resnet("resnet18" | "resnet34", **kwargs)``."""
+    table = {"resnet18": ResNet18, "resnet34": ResNet34}
+    if name not in table:
+        raise ValueError(f"unknown backbone '{name}' (valid: {', '.join(table)})")
+    return table[name](**kwargs)
 
 
 def _unwrap_state_dict(obj: object, origin: str) -> dict[str, torch.Tensor]:
@@ -121,7 +188,7 @@ def _unwrap_state_dict(obj: object, origin: str) -> dict[str, torch.Tensor]:
         if isinstance(obj, Mapping) and key in obj and isinstance(obj[key], Mapping):
             obj = obj[key]
     if not isinstance(obj, Mapping) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise TdofError("is not a torch state dict of tensors (expected a torchvision resnet34 checkpoint)",
+        raise TdofError("is not a torch state dict of tensors (expected a torchvision resnet checkpoint)",
                         origin)
     out = {}
     for k, v in obj.items():
@@ -129,8 +196,9 @@ def _unwrap_state_dict(obj: object, origin: str) -> dict[str, torch.Tensor]:
     return out
 
 
-def load_torchvision_state_dict(model: ResNet34, path_or_dict: str | Path | Mapping) -> list[str]:
-    """Load a torchvision ``resnet34`` checkpoint (a path or a state dict) into ``model``.
+def load_torchvision_state_dict(model: ResNet, path_or_dict: str | Path | Mapping) -> list[str]:
+    """Load a torchvision ``resnet18`` / ``resnet34`` checkpoint (a path or a state dict) into ``model``
+    (its own layout: a resnet18 file into a ResNet18).
 
     Strict on the backbone: every ``conv1 / bn1 / layer*`` parameter and BatchNorm running
     statistic must be present with the right shape; ``fc.*`` is ignored either way, and
@@ -149,7 +217,7 @@ def load_torchvision_state_dict(model: ResNet34, path_or_dict: str | Path | Mapp
         origin = str(path_or_dict)
         p = Path(path_or_dict)
         if not p.is_file():
-            raise TdofError("no such checkpoint file (give a torchvision resnet34 .pth)", p)
+            raise TdofError(f"no such checkpoint file (give a torchvision {getattr(model, 'arch', 'resnet')} .pth)", p)
         try:
             obj = torch.load(p, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - any unpickling failure is a user file problem
@@ -163,7 +231,7 @@ def load_torchvision_state_dict(model: ResNet34, path_or_dict: str | Path | Mapp
     missing = [k for k in wanted if k not in sd and not k.endswith("num_batches_tracked")]
     if missing:
         more = f" (+{len(missing) - 5} more)" if len(missing) > 5 else ""
-        raise TdofError(f"checkpoint lacks ResNet34 keys {', '.join(missing[:5])}{more}", origin)
+        raise TdofError(f"checkpoint lacks {type(model).__name__} keys {', '.join(missing[:5])}{more}", origin)
     new: dict[str, torch.Tensor] = {}
     for k, target in wanted.items():
         if k not in sd:
