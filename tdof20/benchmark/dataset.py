@@ -21,6 +21,7 @@ scene list, or grown with ``add=True`` (``dataset build --add``).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 from collections import Counter, defaultdict
@@ -31,13 +32,14 @@ from tdof20.benchmark.splits import (PARTS, SPLITS, min_simple_steps, part_needs
 from tdof20.errors import TdofError
 from tdof20.formats import (check_output_dir, check_output_file, check_scene_images, read_bytes, read_json,
                             read_models_info, read_scene, write_json)
+from tdof20.formats.dataset import open_dataset
 from tdof20.progress import progress
 
 TARGET_MIN_VISIB = 0.1  # BOP: instances at least 10 % visible are targets
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json", "scene_info.json")
 BUILD_MARKER = ".build.json"  # the scene list of a build under way; removed when it is done
 SPLIT_RULES = {"simple": "single-object scenes, contiguous test arc per arm position (docs/dataset.md)",
-               "hard": "train: single + multi 01,03-07,12-14,16-20; test: multi 02,08,09,10,11,15"}
+               "hard": "train: single + multi 00,01,03-07,12-14,16-19; test: multi 02,08,09,10,11,15"}
 
 
 def _scene_info(scene_dir: Path) -> dict:
@@ -292,31 +294,54 @@ def write_splits(root: Path, info: dict | None = None) -> None:
 
 
 def split_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]]:
-    """(scene_id, im_id) of a split part, in order."""
-    if split not in SPLITS or part not in PARTS:
+    """(scene_id, im_id) of a split part, in order (any layout: :meth:`tdof20.formats.dataset.Dataset.frames`)."""
+    ds = open_dataset(root)
+    if ds.layout == "tdof20" and (split not in SPLITS or part not in PARTS):
         raise TdofError(f"split must be one of {SPLITS} and part one of {PARTS}, got {split}/{part}")
-    m = read_json(Path(root) / "splits" / f"{split}_{part}.json")
-    return [(int(s), i) for s, ims in m.items() for i in ims]
+    return ds.frames(split, part)
 
 
 def stats(root: str | Path) -> dict:
-    """Counts per split part, per scene and per object, with the paper's figures beside them."""
-    root = Path(root)
-    info = read_json(root / "dataset_info.json")
-    out: dict = {"scenes": len(info["scenes"]), "images": 0, "splits": {}, "per_scene": {}, "per_object": {}}
+    """Counts per split part, per scene and per object, with the paper's figures beside them.
+
+    Both layouts: "layout", "scenes", "images", "per_scene" {name: images}, "per_object" {obj_id:
+    instances}, "objects" {obj_id: name}, "splits". tdof20: "splits" {"simple_train": n, ...,
+    "simple_targets": n}; BOP: "splits" {"<folder>": images, ..., "targets": n} and "split_folders"
+    {"<folder>": {"scenes", "images", "test_images", "targets"}}."""
+    ds = open_dataset(root)
+    out: dict = {"layout": ds.layout, "scenes": 0, "images": 0, "splits": {}, "per_scene": {}, "per_object": {},
+                 "objects": {o: ds.object_name(o) for o in ds.obj_ids}}
     obj_count: Counter = Counter()
-    for sid_s, name in info["scenes"].items():
-        gt = read_json(root / "scenes" / f"{int(sid_s):06d}" / "scene_gt.json")
-        out["per_scene"][name] = len(gt)
-        out["images"] += len(gt)
-        for insts in gt.values():
-            obj_count.update(g["obj_id"] for g in insts)
+    folders = [None] if ds.layout == "tdof20" else ds.splits()
+    for folder in folders:
+        n_folder = 0
+        ids = ds.scene_ids(folder)
+        for sid in ids:
+            sc = ds.scene(sid, folder, require_gt=False)
+            out["per_scene"][ds.scene_name(sid, folder)] = len(sc.im_ids())
+            n_folder += len(sc.im_ids())
+            for insts in sc.gt.values():
+                obj_count.update(int(g["obj_id"]) for g in insts)
+        out["scenes"] += len(ids)
+        out["images"] += n_folder
+        if folder is not None:
+            n_targets = len(ds.read_targets()) if folder == ds.targets_split() and ds.targets_path().is_file() else 0
+            out.setdefault("split_folders", {})[folder] = {
+                "scenes": len(ids), "images": n_folder, "test_images": len(ds.frames(folder, "test")),
+                "targets": n_targets}
+            out["splits"][folder] = n_folder
     out["per_object"] = {int(k): v for k, v in sorted(obj_count.items())}
-    for split in SPLITS:
+    if ds.layout == "bop":
+        out["splits"]["targets"] = len(ds.read_targets()) if ds.targets_path().is_file() else 0
+        return out
+    for split in dict.fromkeys(list(SPLITS) + ds.splits()):
+        if not any((ds.root / "splits" / f"{split}_{p}.json").is_file() for p in PARTS):
+            continue
         for part in PARTS:
-            ims = split_images(root, split, part)
-            out["splits"][f"{split}_{part}"] = len(ims)
-        out["splits"][f"{split}_targets"] = len(read_json(root / f"test_targets_{split}.json"))
+            path = ds.root / "splits" / f"{split}_{part}.json"
+            out["splits"][f"{split}_{part}"] = len(ds.frames(split, part)) if path.is_file() else 0
+        tp = ds.targets_path(split)
+        out["splits"][f"{split}_targets"] = len(ds.read_targets(split)) if tp.is_file() else 0
     return out
 
 
@@ -339,20 +364,200 @@ def empty_part_reason(root: str | Path, split: str, part: str) -> str:
     return f"{holds}, and its {split}/{part} scenes list no images"
 
 
-def pack(root: str | Path, split: str, part: str, out: str | Path, show_progress: bool = True) -> Path:
-    """Pack a split part of the dataset into one HDF5 shard (see tdof20.formats.shards)."""
+def pack(root: str | Path, split: str, part: str, out: str | Path, show_progress: bool = True,
+         cache_dir: str | Path | None = None) -> Path:
+    """Pack a split part of the dataset (either layout) into one HDF5 shard (see
+    tdof20.formats.shards). Restored depth the dataset lacks is rendered first, once, and cached
+    (under ROOT/.cache/ or ``cache_dir``)."""
     from tdof20.formats.shards import pack_shard
 
     root = Path(root)
     out = Path(out)
     check_output_file(out, "--out", "HDF5 file")
-    if not (root / "dataset_info.json").exists():
-        raise TdofError("not a tdof20 dataset (no dataset_info.json)", root)
-    images = split_images(root, split, part)
+    ds = open_dataset(root, cache_dir=cache_dir)
+    split = ds.check_split(split)
+    if ds.layout == "tdof20" and (split not in ds.splits() or part not in PARTS):
+        split_images(root, split, part)  # the message naming the valid splits and parts
+    images = ds.frames(split, part)
     if not images:
+        if ds.layout == "bop":
+            raise TdofError(f"nothing to pack: the split folder {split}/ has no images", root)
         raise TdofError(f"nothing to pack: the {split} split's {part} part has no images "
                         f"(splits/{split}_{part}.json): {empty_part_reason(root, split, part)}", root)
+    ds.render_restored(images, split, show_progress=show_progress)
     with progress(show_progress) as bar:
         task = bar.add_task(f"packing {split}/{part}", total=len(images))
-        return pack_shard(images, root / "scenes", out, {"split": split, "part": part, "dataset": str(root.resolve())},
-                          models_dir=root / "models", progress_bar=lambda: bar.advance(task))
+        return pack_shard(images, ds, out, {"split": split, "part": part, "dataset": str(root.resolve()),
+                                            "layout": ds.layout},
+                          models_dir=ds.models_dir, progress_bar=lambda: bar.advance(task), split=split)
+
+
+# ---------------------------------------------------------------------------------------------
+# the standard BOP layout (dataset build --layout bop)
+# ---------------------------------------------------------------------------------------------
+BOP_PARTS = {"train": "train", "test": "test"}  # protocol part -> BOP split folder
+_BOP_SCENE_JSON = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
+
+
+def _bop_scene_part(src: Path, dst: Path, im_ids: list[int]) -> None:
+    """Write the frames ``im_ids`` of the scene ``src`` as the BOP scene ``dst`` (whole: a copy
+    beside it, then renames): the three JSON files cut to those frames, and every per-image file
+    (rgb, depth, depth_* and the masks) of them."""
+    from tdof20.formats.bop import dumps_bop_json
+    from tdof20.formats.io import atomic_write_bytes
+
+    keep = {str(i) for i in im_ids}
+    tmp, old = dst.with_name(f".{dst.name}.tmp"), dst.with_name(f".{dst.name}.old")
+    for p in (tmp, old):
+        if p.exists():
+            shutil.rmtree(p)
+    tmp.mkdir(parents=True)
+    for name in _BOP_SCENE_JSON:
+        if (src / name).exists():
+            data = read_json(src / name)
+            atomic_write_bytes(tmp / name, dumps_bop_json({k: v for k, v in data.items() if k in keep}).encode())
+    stems = {f"{i:06d}" for i in im_ids}
+    for sub in sorted(p for p in src.iterdir() if p.is_dir() and p.name not in ("models", "models_eval", "qa")):
+        files = [f for f in sub.iterdir() if f.is_file() and f.name[:6] in stems and not f.name.startswith(".")]
+        if files:
+            (tmp / sub.name).mkdir()
+        for f in files:
+            try:
+                os.link(f, tmp / sub.name / f.name)  # same file system: no copy
+            except OSError:
+                shutil.copyfile(f, tmp / sub.name / f.name)
+    if dst.exists():
+        os.replace(dst, old)
+    os.replace(tmp, dst)
+    if old.exists():
+        shutil.rmtree(old)
+
+
+def build_bop_dataset(scene_dirs: list[str | Path], out: str | Path, split: str, show_progress: bool = True) -> dict:
+    """Gather annotated scenes into ``out`` in the standard BOP layout, one protocol (``split``:
+    'simple' or 'hard') deciding which frames go to ``train/`` and which to ``test/``::
+
+        out/camera.json  out/models/ [out/models_eval/]  out/test_targets_bop19.json
+        out/train/{scene_id:06d}/  out/test/{scene_id:06d}/     BOP scenes (rgb, depth, depth_restored,
+                                                                mask, mask_visib, scene_*.json)
+        out/tdof20_bop.json        protocol, scene names;  out/object_names.json  {id: name}
+
+    Scene ids are tdof20's (single/<class> -> 1..20, multi/NN -> 21..40); a simple-split scene
+    has frames in both folders. ``out`` must be empty or new, or hold an earlier BOP build of
+    the same scenes and protocol (rebuilt). Returns :func:`stats` of the result."""
+    from tdof20.benchmark.splits import SPLITS as PROTOCOLS
+    from tdof20.formats.dataset import BOP_INFO, BOP_TARGETS, NAMES_FILE
+
+    out = Path(out)
+    if split not in PROTOCOLS:
+        raise TdofError(f"--layout bop writes one protocol: --split must be one of {', '.join(PROTOCOLS)}, "
+                        f"got '{split}'")
+    dirs = [Path(d) for d in scene_dirs]
+    if not dirs:
+        raise TdofError("give at least one annotated scene folder")
+    check_output_dir(out, "--out", "folder for the dataset")
+    for d in dirs:
+        if not d.is_dir():
+            raise TdofError("no such scene folder", d)
+    _check_not_nested(dirs, out)
+    new: dict[int, tuple[dict, Path]] = {}
+    sizes: dict[int, tuple[int, int]] = {}
+    scenes = {}
+    for d in dirs:
+        info = _scene_info(d)
+        sid = scene_number(info["scene_id"])
+        if sid in new:
+            raise TdofError(f"scene {info['scene_id']} is given twice ({new[sid][1]} and {d})")
+        scenes[sid] = read_scene(d)
+        sizes[sid] = check_scene_images(scenes[sid])
+        new[sid] = (info, d)
+    first = min(new)
+    for sid, hw in sizes.items():
+        if hw != sizes[first]:
+            raise TdofError(f"its images are {hw[1]}x{hw[0]} (width x height), those of {new[first][0]['scene_id']} "
+                            f"are {sizes[first][1]}x{sizes[first][0]}: a dataset has one image size", new[sid][1])
+    marker = out / BUILD_MARKER
+    previous = read_json(out / BOP_INFO) if (out / BOP_INFO).is_file() else None
+    if previous is not None:
+        if not isinstance(previous, dict) or sorted(int(k) for k in previous.get("scenes", {})) != sorted(new) \
+                or previous.get("protocol") != split:
+            raise TdofError(f"holds a BOP build of other scenes or another protocol ({BOP_INFO}): choose another --out",
+                            out)
+    elif marker.exists():
+        pending = read_json(marker)
+        if not isinstance(pending, dict) or sorted(pending.get("scenes", [])) != sorted(new) \
+                or pending.get("layout") != "bop":
+            raise TdofError(f"an unfinished build of other scenes is here ({BUILD_MARKER}): run that build again to "
+                            "finish it, or choose another --out", out)
+    elif out.exists() and any(out.iterdir()):
+        raise TdofError("folder is not empty and holds no dataset; choose another --out", out)
+    sources = [d for _, (_, d) in sorted(new.items())]
+    models, model_copies = _plan_models(sources, "models", out, False)
+    evals, eval_copies = _plan_models(sources, "models_eval", out, False)
+    if evals and set(evals) != set(models):
+        raise TdofError(f"models_eval/ covers objects {sorted(evals)} but models/ has {sorted(models)}: give every "
+                        "scene a models_eval/ with its objects, or none", sources[0])
+
+    # which frames go where
+    members: dict[str, dict[int, list[int]]] = {p: defaultdict(list) for p in BOP_PARTS}
+    targets = []
+    for sid, (info, _) in sorted(new.items()):
+        sc = scenes[sid]
+        for im in sc.im_ids():
+            part = part_of(split, sid, im, info["steps"], info["n_arms"])
+            if part is None:
+                continue
+            members[part][sid].append(im)
+            if part == "test":
+                counts = Counter(g["obj_id"] for g, gi in zip(sc.gt.get(im, []), sc.gt_info.get(im, []))
+                                 if gi["visib_fract"] >= TARGET_MIN_VISIB)
+                targets += [{"im_id": im, "inst_count": int(n), "obj_id": int(o), "scene_id": sid}
+                            for o, n in sorted(counts.items())]
+    if not any(members[p] for p in BOP_PARTS):
+        raise TdofError(f"none of the scenes' frames is in the {split} protocol: "
+                        f"{part_needs(split, 'train')}", sources[0])
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(marker, {"scenes": sorted(new), "layout": "bop"})
+    for src, dst in model_copies + eval_copies:
+        _copy_file(src, dst)
+    write_json(out / "models" / "models_info.json", {str(k): v for k, v in sorted(models.items())})
+    if evals:
+        write_json(out / "models_eval" / "models_info.json", {str(k): v for k, v in sorted(evals.items())})
+    sc0 = scenes[first]
+    im0 = sc0.im_ids()[0]
+    K = sc0.K(im0)
+    h, w = sizes[first]
+    write_json(out / "camera.json", {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "depth_scale": float(sc0.depth_scale(im0)),
+                                     "fx": float(K[0, 0]), "fy": float(K[1, 1]), "height": int(h), "width": int(w)})
+    for part, folder in BOP_PARTS.items():  # a rebuild drops scenes a part no longer has
+        if (out / folder).is_dir():
+            for p in (out / folder).iterdir():
+                if p.is_dir() and p.name.isdigit() and int(p.name) not in members[part]:
+                    shutil.rmtree(p)
+    with progress(show_progress) as bar:
+        task = bar.add_task("writing BOP scenes", total=sum(len(m) for m in members.values()))
+        for part, folder in BOP_PARTS.items():
+            for sid, ims in sorted(members[part].items()):
+                _bop_scene_part(new[sid][1], out / folder / f"{sid:06d}", sorted(ims))
+                bar.advance(task)
+    from tdof20.formats.io import atomic_write_bytes
+
+    body = ",\n".join("  " + json.dumps(t, sort_keys=True) for t in targets)
+    atomic_write_bytes(out / BOP_TARGETS, ("[\n" + body + ("\n" if targets else "") + "]\n").encode())
+    write_json(out / NAMES_FILE, {str(o): _object_name(o) for o in sorted(models)})
+    write_json(out / BOP_INFO, {"source": "tdof20 dataset build --layout bop", "protocol": split,
+                                "split_rule": SPLIT_RULES[split],
+                                "folders": {folder: part for part, folder in BOP_PARTS.items()},
+                                "scenes": {str(sid): info["scene_id"] for sid, (info, _) in sorted(new.items())}})
+    marker.unlink()
+    return stats(out)
+
+
+def _object_name(obj_id: int) -> str:
+    from tdof20.objects import get_object
+
+    try:
+        return get_object(int(obj_id)).name
+    except TdofError:
+        return f"obj_{int(obj_id):06d}"

@@ -35,8 +35,13 @@ def _keys(ev: Evaluation) -> list[str]:
     return [k for k in getattr(ev, "keys", ("n",) + tuple(METRIC_LABELS))[1:] if k in METRIC_LABELS]
 
 
-def object_name(obj_id: int) -> str:
-    """The catalog name of ids 1-20 (tdof20.objects), else 'obj_<id>'."""
+def object_name(obj_id: int, evals: Sequence[Evaluation] = ()) -> str:
+    """The dataset's name of the object (the evaluations' ``object_labels``: a BOP dataset's
+    'obj_000005' or its names file), else the catalog name of ids 1-20 (tdof20.objects), else 'obj_<id>'."""
+    for e in evals:
+        name = (getattr(e, "object_labels", None) or {}).get(int(obj_id))
+        if name:
+            return name
     if 1 <= obj_id <= 20:
         from tdof20.objects import get_object
 
@@ -65,7 +70,7 @@ def _rows(evals: Sequence[Evaluation], key: str):
     rows = []
     for i in ids:
         vals = [s["objects"].get(str(i), {}).get(key) for s in sums]
-        rows.append((f"{i:>2} {object_name(i)}", not sym.get(i, True), vals))  # text pads ids; markdown strips
+        rows.append((f"{i:>2} {object_name(i, evals)}", not sym.get(i, True), vals))  # text pads ids; markdown strips
     n_obj = max((s["mean"]["n"] for s in sums), default=0)
     n_all = max((s["all"]["n"] for s in sums), default=0)
     rows.append((f"mean ({n_obj} objects)", False, [s["mean"][key] for s in sums]))
@@ -141,7 +146,7 @@ def _table(title: str, first: str, rows: list, keys: list[str], markdown: bool) 
 def metrics_table(ev: Evaluation, markdown: bool = False) -> str:
     """Every metric computed for one method: objects, mean, all (percent; n = targets)."""
     s = ev.summary()
-    rows = [(f"{int(k):>2} {object_name(int(k))}", not ev.objects[int(k)].symmetric, v, True)
+    rows = [(f"{int(k):>2} {object_name(int(k), [ev])}", not ev.objects[int(k)].symmetric, v, True)
             for k, v in s["objects"].items()]
     rows.append((f"mean ({s['mean']['n']} objects)", False, s["mean"], False))
     rows.append(("all", False, s["all"], True))

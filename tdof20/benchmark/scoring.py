@@ -162,35 +162,30 @@ def _scene_data(scene_dir: Path) -> SceneData:
 
 
 class DatasetView:
-    """A tdof20 dataset folder as scoring sees it (models_info read at once; models and scenes
-    on demand)."""
+    """A dataset folder (tdof20's layout or BOP's standard one, read through
+    :func:`tdof20.formats.dataset.open_dataset`) as scoring sees it: models_info read at once,
+    models and scenes on demand. ``split``: a BOP dataset's split folder (default: the one
+    test_targets_bop19.json belongs to); a tdof20 dataset's protocol is only used for messages."""
 
-    def __init__(self, root: str | Path):
-        self.root = Path(root)
-        if not self.root.is_dir():
-            raise TdofError("no such dataset folder", self.root)
-        info_path = self.root / "dataset_info.json"
-        self.info = read_json(info_path) if info_path.exists() else {}
-        if not isinstance(self.info, dict):
-            raise TdofError("must hold a JSON object", info_path)
-        self.scene_names: dict[int, str] = {}
-        for k, v in (self.info.get("scenes") or {}).items():
-            try:
-                self.scene_names[int(k)] = str(v)
-            except ValueError:
-                raise TdofError(f"scene key {k!r} is not an integer id", info_path) from None
-        scenes_dir = self.root / "scenes"
-        on_disk = {int(p.name) for p in scenes_dir.iterdir() if p.is_dir() and p.name.isdigit()} \
-            if scenes_dir.is_dir() else set()
-        self.scene_ids = set(self.scene_names) | on_disk
+    def __init__(self, root: str | Path, split: str | None = None):
+        from tdof20.formats.dataset import open_dataset
+
+        self.dataset = open_dataset(root)  # the one "not a dataset" check
+        self.root = self.dataset.root
+        self.info = self.dataset.info
+        self.folder: str | None = None
+        if self.dataset.layout == "bop":
+            self.folder = self.dataset.check_split(split if split is not None else self.dataset.targets_split())
+        self.scene_ids = set(self.dataset.scene_ids(self.folder))
         self._scenes: dict[int, SceneData] = {}
         self._extra: dict[Any, Any] = {}
-        self.models_dir = self.root / "models_eval" if (self.root / "models_eval").is_dir() else self.root / "models"
-        info_file = self.models_dir / MODELS_INFO
-        if not info_file.exists():
-            info_file = self.root / "models" / MODELS_INFO
-        self.models_info = read_models_info(info_file)
+        eval_dir = self.dataset.models_eval_dir
+        self.models_dir = eval_dir if eval_dir is not None else self.dataset.models_dir
+        self.models_info = read_models_info(self.models_dir)
         self.models: dict[int, M.ModelPoints] = {}
+
+    def scene_dir(self, scene_id: int) -> Path:
+        return self.dataset.scene_dir(scene_id, self.folder)
 
     def model(self, obj_id: int) -> M.ModelPoints:
         if obj_id not in self.models:
@@ -212,7 +207,7 @@ class DatasetView:
         key = ("mesh", obj_id)
         if key not in self._extra:
             found = None
-            for d in dict.fromkeys([self.models_dir, self.root / "models"]):
+            for d in dict.fromkeys([self.models_dir, self.dataset.models_dir]):
                 p = model_path(d, obj_id)
                 if p.exists() and len(read_model_mesh(p, need_faces=False)[1]):
                     found = p
@@ -230,7 +225,7 @@ class DatasetView:
         return self._extra[key]
 
     def depth_path(self, scene_id: int, im_id: int) -> Path:
-        return self.root / "scenes" / f"{scene_id:06d}" / "depth" / f"{im_id:06d}.png"
+        return self.scene_dir(scene_id) / "depth" / f"{im_id:06d}.png"
 
     def depth_mm(self, scene_id: int, im_id: int) -> np.ndarray:
         """(H,W) float32 depth in mm of a test image (depth/ PNG x depth_scale; 0 = no depth)."""
@@ -239,7 +234,7 @@ class DatasetView:
         sc = self.scene(scene_id).depth_scale.get(im_id, 1.0)
         if isinstance(sc, bool) or not isinstance(sc, (int, float)) or not sc > 0:
             raise TdofError(f"image {im_id}: depth_scale must be a number > 0, got {sc!r}",
-                            self.root / "scenes" / f"{scene_id:06d}" / "scene_camera.json")
+                            self.scene_dir(scene_id) / "scene_camera.json")
         d = read_png(self.depth_path(scene_id, im_id), kind="depth")
         return d.astype(np.float32) * np.float32(sc)
 
@@ -257,7 +252,7 @@ class DatasetView:
                 if isinstance(c, dict) and isinstance(c.get("width"), int) and c["width"] > 0:
                     w = int(c["width"])
             if w is None:
-                sd = self.root / "scenes" / f"{scene_id:06d}"
+                sd = self.scene_dir(scene_id)
                 for sub in ("rgb", "depth"):
                     pngs = sorted((sd / sub).glob("*.png")) if (sd / sub).is_dir() else []
                     if pngs:
@@ -288,14 +283,14 @@ class DatasetView:
 
     def scene(self, scene_id: int) -> SceneData:
         if scene_id not in self._scenes:
-            self._scenes[scene_id] = _scene_data(self.root / "scenes" / f"{scene_id:06d}")
+            self._scenes[scene_id] = _scene_data(self.scene_dir(scene_id))
         return self._scenes[scene_id]
 
     def visib(self, scene_id: int) -> dict[int, list[float]] | None:
         """visib_fract per image and instance from scene_gt_info.json (None when absent)."""
         key = ("visib", scene_id)
         if key not in self._extra:
-            path = self.root / "scenes" / f"{scene_id:06d}" / "scene_gt_info.json"
+            path = self.scene_dir(scene_id) / "scene_gt_info.json"
             out = None
             if path.exists():
                 data = read_json(path)
@@ -320,7 +315,10 @@ class DatasetView:
         return gts
 
     def scene_label(self, scene_id: int) -> str:
-        return self.scene_names.get(scene_id, str(scene_id))
+        return self.dataset.scene_name(scene_id, self.folder)
+
+    def object_name(self, obj_id: int) -> str:
+        return self.dataset.object_name(obj_id)
 
 
 @dataclass
@@ -335,11 +333,22 @@ class Targets:
         return len(self.scene_id)
 
 
-def targets_path(dataset_root: str | Path, split: str | None, targets: str | Path | None) -> Path:
+def targets_path(dataset_root: str | Path, split: str | None, targets: str | Path | None,
+                 ds: "DatasetView | None" = None) -> Path:
+    """The targets file to score against: ``targets``, or those of ``split`` (tdof20:
+    ROOT/test_targets_{split}.json; BOP, ``ds`` given: ROOT/test_targets_bop19.json of its test folder)."""
+    bop = ds is not None and ds.dataset.layout == "bop"
     if (split is None) == (targets is None):
-        raise TdofError("give exactly one of --split (simple or hard) and --targets FILE")
+        raise TdofError("give exactly one of --split (" + ("a split folder such as test" if bop else "simple or hard")
+                        + ") and --targets FILE")
     if targets is not None:
         return Path(targets)
+    if bop:
+        if split != ds.dataset.targets_split():
+            raise TdofError(f"{ds.dataset.targets_path().name} holds the targets of the split folder "
+                            f"{ds.dataset.targets_split()}/, not {split}/: score with --split "
+                            f"{ds.dataset.targets_split()} or give --targets FILE", ds.root)
+        return ds.dataset.targets_path()
     if split not in SPLITS:
         raise TdofError(f"unknown split {split!r} (use one of: {', '.join(SPLITS)})")
     return Path(dataset_root) / f"test_targets_{split}.json"
@@ -402,7 +411,7 @@ def require_targets(tg: Targets, ds: DatasetView, split: str | None) -> None:
     from tdof20.benchmark.dataset import empty_part_reason, split_images
 
     why = ""
-    if (ds.root / "dataset_info.json").exists():
+    if ds.dataset.layout == "tdof20":
         try:
             has_test = bool(split_images(ds.root, split, "test"))
         except TdofError:
@@ -492,6 +501,7 @@ class Evaluation:
     n_rows: int = 0
     keys: tuple = KEYS  # "n" and the metric keys computed, in report order
     scene_labels: dict = field(default_factory=dict)  # scene id -> its name ("multi/08")
+    object_labels: dict = field(default_factory=dict)  # obj_id -> the dataset's name for it
 
     def summary(self) -> dict[str, Any]:
         """{"objects": {"<obj_id>": {...}}, "mean": {...} (over objects), "all": {...} (pooled over
@@ -758,8 +768,8 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     :data:`METRICS` ("add,proj,vsd,mssd,mspd,ar" or a list)."""
     timings: dict[str, float] = {}
     t0 = _time.perf_counter()
-    ds = dataset if dataset is not None else DatasetView(dataset_root)
-    tpath = targets_path(ds.root, split, targets)
+    ds = dataset if dataset is not None else DatasetView(dataset_root, split)
+    tpath = targets_path(ds.root, split, targets, ds)
     tg = load_targets(tpath, ds)
     require_targets(tg, ds, split)
     keys, notes = resolve_metrics(metrics, ds, tg)
@@ -846,7 +856,8 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
         timings["bop"] = _time.perf_counter() - tic
     timings["total"] = _time.perf_counter() - t0
     labels = {int(sid): ds.scene_label(int(sid)) for sid in np.unique(tg.scene_id)}
-    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels)
+    names = {int(ob): ds.object_name(int(ob)) for ob in objects}
+    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels, names)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1047,8 +1058,8 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
         check_output_file(json_out, "--json", "JSON file")
     if plots is not None:
         check_output_dir(plots, "--plots", "folder for the plots and report.md")
-    ds = DatasetView(dataset)
-    tpath = targets_path(ds.root, split, targets)
+    ds = DatasetView(dataset, split)
+    tpath = targets_path(ds.root, split, targets, ds)
     evals = [evaluate(r, ds.root, split, targets, dataset=ds, metrics=metrics) for r in results]
     names = report.method_names(evals)
     n_targets = max((e.summary()["all"]["n"] for e in evals), default=0)

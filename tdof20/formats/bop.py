@@ -256,6 +256,36 @@ def _mask_name(im_id: int, gt_id: int) -> str:
     return f"{int(im_id):06d}_{int(gt_id):06d}.png"
 
 
+COLOUR_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def colour_path(folder: str | Path, im_id: int) -> Path:
+    """The colour image ``{im_id:06d}`` of ``folder``: .png, else .jpg / .jpeg when one exists
+    (the .png name when none does, so that a missing image is reported under it)."""
+    folder = Path(folder)
+    stem = f"{int(im_id):06d}"
+    for suffix in COLOUR_SUFFIXES:
+        p = folder / (stem + suffix)
+        if p.exists():
+            return p
+    return folder / (stem + ".png")
+
+
+def read_colour(path: str | Path) -> np.ndarray:
+    """(H,W,3) uint8 RGB of a PNG (checked, :func:`read_png`) or a JPEG (OpenCV); a missing or
+    undecodable file is one TdofError naming it."""
+    p = Path(path)
+    if p.suffix.lower() == ".png":
+        return read_png(p, kind="rgb")
+    import cv2
+
+    data = np.frombuffer(read_bytes(p, "colour image"), np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if img is None:
+        raise TdofError("cannot be decoded as a JPEG colour image", p)
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
 @dataclass
 class BopScene:
     """A BOP scene read from disk. camera[im_id] = {"cam_K" (3,3), "depth_scale", optional
@@ -288,9 +318,13 @@ class BopScene:
         sub = "mask_visib" if visib else "mask"
         return read_png(self.path / sub / _mask_name(im_id, gt_id), kind="mask") > 0
 
+    def rgb_path(self, im_id: int) -> Path:
+        """``rgb/{im_id:06d}.png``, or ``.jpg`` when only that exists (BOP allows both)."""
+        return colour_path(self.path / "rgb", im_id)
+
     def rgb(self, im_id: int) -> np.ndarray:
-        """(H,W,3) uint8 RGB."""
-        return read_png(self.path / "rgb" / _im(im_id), kind="rgb")
+        """(H,W,3) uint8 RGB (a PNG or a JPEG)."""
+        return read_colour(self.rgb_path(im_id))
 
     def depth(self, im_id: int) -> np.ndarray:
         """(H,W) uint16 depth in ``depth_scale`` mm units (0 = no depth)."""
@@ -614,5 +648,5 @@ __all__ = [
     "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "MODELS_INFO", "EMPTY_BBOX", "BopScene",
     "BopSceneWriter", "read_scene", "check_scene_images", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop",
     "pose_from_bop", "write_models_info", "read_models_info", "dumps_bop_json", "model_path",
-    "read_model_mesh", "write_model_mesh",
+    "read_model_mesh", "write_model_mesh", "colour_path", "read_colour", "COLOUR_SUFFIXES",
 ]

@@ -6,7 +6,7 @@ image per chunk, LZF-compressed — fast to decode):
     rgb             (N,H,W,3) uint8    colour of the transparent phase
     depth           (N,H,W)   uint16   raw sensor depth (depth_scale mm per unit, 0 = none)
     depth_restored  (N,H,W)   uint16   restored depth (0 where the scene has none)
-    label           (N,H,W)   uint8    semantic label: obj_id of the visible object, 0 = background
+    label           (N,H,W)   uint16   semantic label: obj_id of the visible object, 0 = background
     instance        (N,H,W)   uint8    index of the visible instance + 1 (into the pose arrays), 0 = none
     obj_id          (N,M)     int16    object of each instance, 0 = padding (M = most instances in an image)
     R               (N,M,3,3) float32  cam_R_m2c
@@ -30,15 +30,21 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.formats.bop import read_models_info, read_scene
-from tdof20.formats.io import check_output_file
+from tdof20.formats.io import check_output_file, read_png
 
 IMAGE_KEYS = ("rgb", "depth", "depth_restored", "label", "instance")
 
 
-def pack_shard(images: list[tuple[int, int]], scenes_root: str | Path, out: str | Path, attrs: dict | None = None,
-               models_dir: str | Path | None = None, progress_bar=None) -> Path:
-    """Write the images (scene_id, im_id) of a dataset into one HDF5 file, atomically."""
-    scenes_root = Path(scenes_root)
+def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: dict | None = None,
+               models_dir: str | Path | None = None, progress_bar=None, split: str | None = None) -> Path:
+    """Write the images (scene_id, im_id) of a dataset into one HDF5 file, atomically. ``source``:
+    a :class:`~tdof20.formats.dataset.Dataset` (its ``split`` folder; restored depth stored or
+    rendered, see :meth:`~tdof20.formats.dataset.Dataset.render_restored`) or a folder of BOP
+    scenes ``{scene_id:06d}/`` (restored depth where depth_restored/ has it, else 0)."""
+    from tdof20.formats.dataset import Dataset
+
+    reader = source if isinstance(source, Dataset) else None
+    scenes_root = reader.root if reader is not None else Path(source)
     out = check_output_file(out, "the shard", "HDF5 file")
     if not images:
         a = attrs or {}
@@ -46,8 +52,16 @@ def pack_shard(images: list[tuple[int, int]], scenes_root: str | Path, out: str 
         raise TdofError(f"nothing to pack: {what} has no images", a.get("dataset", scenes_root))
     scenes = {}
     for sid in sorted({s for s, _ in images}):
-        scenes[sid] = read_scene(scenes_root / f"{sid:06d}")
-    m = max(len(scenes[s].gt[i]) for s, i in images)
+        scenes[sid] = reader.scene(sid, split) if reader is not None else read_scene(scenes_root / f"{sid:06d}")
+
+    def restored(sid: int, im: int) -> np.ndarray | None:
+        if reader is not None:
+            p = reader.restored_path(sid, im, split)
+            return read_png(p, kind="depth") if p is not None else None
+        p = scenes[sid].path / "depth_restored" / f"{im:06d}.png"
+        return read_png(p, kind="depth") if p.exists() else None
+
+    m = max(1, max(len(scenes[s].gt.get(i, [])) for s, i in images))
     first = scenes[images[0][0]]
     rgb0 = first.rgb(images[0][1])
     h, w = rgb0.shape[:2]
@@ -62,7 +76,7 @@ def pack_shard(images: list[tuple[int, int]], scenes_root: str | Path, out: str 
             d_rgb = img("rgb", (h, w, 3), np.uint8)
             d_depth = img("depth", (h, w), np.uint16)
             d_rest = img("depth_restored", (h, w), np.uint16)
-            d_label = img("label", (h, w), np.uint8)
+            d_label = img("label", (h, w), np.uint16)
             d_inst = img("instance", (h, w), np.uint8)
             obj = np.zeros((n, m), np.int16)
             R = np.zeros((n, m, 3, 3), np.float32)
@@ -77,18 +91,19 @@ def pack_shard(images: list[tuple[int, int]], scenes_root: str | Path, out: str 
                     raise TdofError(f"image {im} is {rgb.shape[1]}x{rgb.shape[0]}, the shard is {w}x{h}", sc.path / "rgb")
                 d_rgb[j] = rgb
                 d_depth[j] = sc.depth(im)
-                if (sc.path / "depth_restored" / f"{im:06d}.png").exists():
-                    d_rest[j] = sc.image("depth_restored", im)
-                lab = np.zeros((h, w), np.uint8)
+                rest = restored(sid, im)
+                if rest is not None:
+                    d_rest[j] = rest
+                lab = np.zeros((h, w), np.uint16)
                 ins = np.zeros((h, w), np.uint8)
-                for g, entry in enumerate(sc.gt[im]):
+                for g, entry in enumerate(sc.gt.get(im, [])):
                     mv = sc.mask(im, g, visib=True)
                     lab[mv] = entry["obj_id"]
                     ins[mv] = g + 1
                     obj[j, g] = entry["obj_id"]
                     Rg, tg = sc.pose(im, g)
                     R[j, g], t[j, g] = Rg, tg
-                    vis[j, g] = sc.gt_info[im][g]["visib_fract"] if im in sc.gt_info else 1.0
+                    vis[j, g] = sc.gt_info[im][g].get("visib_fract", 1.0) if im in sc.gt_info else 1.0
                 d_label[j] = lab
                 d_inst[j] = ins
                 K[j] = sc.K(im)

@@ -42,7 +42,37 @@ from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED, N_KEYPOINT
 DEPTH_MODES = ("raw", "filled", "restored")
 #: the input depth used unless told otherwise (the result of the comparison in docs/hff6dof.md)
 DEFAULT_DEPTH_MODE = "filled"
-N_CLASSES = 21          # background + 20 objects; the class of a pixel is its obj_id
+N_CLASSES = 21          # a run without a class list: background + objects 1..20, class = obj_id
+
+
+def identity_classes(n_classes: int = N_CLASSES) -> list[int]:
+    """The class list of a run recorded without one (ids 1..n_classes-1, class c = object c)."""
+    return list(range(1, int(n_classes)))
+
+
+def dataset_classes(obj_ids: Sequence[int], layout: str = "bop") -> list[int]:
+    """The object id of each class 1..n (class 0 = background) a run trains on a dataset with
+    these objects: a tdof20 dataset within the catalog's ids 1..20 keeps the catalog's 20 classes
+    (class = obj_id, comparable runs); any other dataset its own objects in ascending order."""
+    ids = sorted({int(o) for o in obj_ids})
+    if layout == "tdof20" and ids and min(ids) >= 1 and max(ids) <= N_CLASSES - 1:
+        return identity_classes()
+    return ids
+
+
+def class_lookup(classes: Sequence[int]) -> torch.Tensor:
+    """(max id + 1,) int64: obj_id -> class index (1..n), 0 for objects not in ``classes``."""
+    classes = [int(c) for c in classes]
+    lut = torch.zeros(max(classes, default=0) + 1, dtype=torch.int64)
+    lut[torch.tensor(classes, dtype=torch.int64)] = torch.arange(1, len(classes) + 1)
+    return lut
+
+
+def to_classes(ids: torch.Tensor, lut: torch.Tensor) -> torch.Tensor:
+    """Object ids (any shape, 0 = background/padding) -> class indices through ``lut``."""
+    ids = ids.long()
+    inside = (ids >= 0) & (ids < len(lut))
+    return torch.where(inside, lut[ids.clamp(0, len(lut) - 1)], torch.zeros_like(ids))
 
 
 def check_depth_mode(mode: str) -> str:
@@ -61,10 +91,19 @@ SPLIT_PART_SCENES = {
 
 
 def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: str) -> list[tuple[int, int]]:
-    """(scene_id, im_id) of ``split``/``part`` of the dataset; a one-line TdofError naming the split,
-    the part and the dataset root when the part is empty (``purpose``: 'train on', 'predict')."""
+    """(scene_id, im_id) of ``split``/``part`` of the dataset (either layout); a one-line TdofError
+    naming the split, the part and the dataset root when the part is empty (``purpose``: 'train
+    on', 'predict')."""
     from tdof20.benchmark.dataset import split_images
+    from tdof20.formats.dataset import open_dataset
 
+    ds = open_dataset(dataset_root)
+    if ds.layout == "bop":
+        images = ds.frames(split, part)
+        if not images:
+            raise TdofError(f"the split folder {ds.check_split(split)}/ of this dataset has no "
+                            f"{'images' if part == 'train' else 'test images'}: nothing to {purpose}", dataset_root)
+        return images
     images = split_images(dataset_root, split, part)
     if not images:
         takes = SPLIT_PART_SCENES.get((split, part), "")
@@ -80,6 +119,7 @@ def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: 
 
 def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None, k: int = N_KEYPOINTS,
                     n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
+    # (a dataset's keypoints, keypoints.json first: tdof20.formats.dataset.Dataset.keypoints)
     """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_{id:06d}.ply``,
     read with trimesh); every object of models_info.json unless ``obj_ids`` is given."""
     from tdof20.formats import read_models_info
@@ -94,9 +134,18 @@ def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None
     return out
 
 
-def keypoint_table(keypoints: Mapping[int, np.ndarray], n_classes: int = N_CLASSES) -> torch.Tensor:
-    """(n_classes, K, 3) float32 indexed by obj_id (rows of unknown objects are NaN)."""
+def keypoint_table(keypoints: Mapping[int, np.ndarray], n_classes: int = N_CLASSES,
+                   classes: Sequence[int] | None = None) -> torch.Tensor:
+    """(n_classes, K, 3) float32 indexed by class: row c holds the keypoints of object
+    ``classes[c - 1]`` (default: class = obj_id); rows of objects without keypoints are NaN."""
     K = len(next(iter(keypoints.values())))
+    if classes is not None:
+        classes = [int(c) for c in classes]
+        table = torch.full((len(classes) + 1, K, 3), float("nan"))
+        for c, obj_id in enumerate(classes, start=1):
+            if obj_id in keypoints:
+                table[c] = torch.as_tensor(np.asarray(keypoints[obj_id]), dtype=torch.float32)
+        return table
     table = torch.full((n_classes, K, 3), float("nan"))
     for obj_id, kp in keypoints.items():
         if not 0 < int(obj_id) < n_classes:
@@ -188,11 +237,17 @@ class HFFTransform:
       depth) to its object's K keypoints in the ground-truth pose (0 elsewhere); ``mask`` (H,W) bool,
       the pixels where ``vec`` is defined (visible object pixels with restored depth);
     - ``scene_id``, ``im_id``; ``label`` (H,W) the resized ground-truth label whenever the item has one.
+
+    ``classes``: the object id of each class 1..n (a dataset with any ids): labels and instance
+    objects are mapped to class indices (objects outside the list become background), and a
+    keypoint dict is tabled by class. None: class = obj_id (ids 1..20).
     """
 
     def __init__(self, keypoints: Mapping[int, np.ndarray] | torch.Tensor, image_size: Sequence[int],
-                 depth_mode: str = DEFAULT_DEPTH_MODE, targets: bool = True):
-        self.kp_table = keypoints if isinstance(keypoints, torch.Tensor) else keypoint_table(keypoints)
+                 depth_mode: str = DEFAULT_DEPTH_MODE, targets: bool = True, classes: Sequence[int] | None = None):
+        self.lut = class_lookup(classes) if classes is not None else None
+        self.kp_table = keypoints if isinstance(keypoints, torch.Tensor) else \
+            keypoint_table(keypoints, classes=classes)
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self.depth_mode = check_depth_mode(depth_mode)
         self.targets = bool(targets)
@@ -212,12 +267,14 @@ class HFFTransform:
             "scene_id": int(item["scene_id"]), "im_id": int(item["im_id"]),
         }
         if "label" in item:
-            out["label"] = resize_nearest(item["label"], hw)
+            label = item["label"] if self.lut is None else to_classes(item["label"], self.lut)
+            out["label"] = resize_nearest(label, hw)
         if self.targets:
             if "label" not in item or restored is None:
                 raise TdofError("training targets need labels and the restored depth")
+            obj = item["obj_id"] if self.lut is None else to_classes(item["obj_id"], self.lut)
             out.update(self.vector_targets(out["label"], resize_nearest(item["instance"], hw), restored, K,
-                                           item["obj_id"], item["R"], item["t"]))
+                                           obj, item["R"], item["t"]))
         return out
 
     def vector_targets(self, label: torch.Tensor, instance: torch.Tensor, restored: torch.Tensor, K: torch.Tensor,
@@ -251,44 +308,48 @@ class TransformedDataset(torch.utils.data.Dataset):
 
 
 class SceneImages(torch.utils.data.Dataset):
-    """Images (scene_id, im_id) read straight from a BOP dataset root (``ROOT/scenes/``), as items in
-    the layout of :class:`~tdof20.formats.shards.ShardDataset` (what :class:`HFFTransform` takes):
-    rgb, depth, depth_restored (zeros when the scene has none), K, and the labels (label, instance,
-    obj_id, R, t) when ``labels`` is set."""
+    """Images (scene_id, im_id) read straight from a dataset root of either layout (through
+    :func:`tdof20.formats.dataset.open_dataset`; ``split``: a BOP dataset's split folder), as items
+    in the layout of :class:`~tdof20.formats.shards.ShardDataset` (what :class:`HFFTransform`
+    takes): rgb, depth, K, depth_restored (``restored``: stored, else rendered once and cached;
+    None without ``restored``), and the labels (label, instance, obj_id, R, t) when ``labels``."""
 
-    def __init__(self, root: str | Path, images: Sequence[tuple[int, int]], labels: bool = False):
+    def __init__(self, root: str | Path, images: Sequence[tuple[int, int]], labels: bool = False,
+                 restored: bool = True, split: str | None = None, cache_dir: str | Path | None = None):
         self.root = Path(root)
         self.images = [(int(s), int(i)) for s, i in images]
         self.labels = bool(labels)
-        self._scenes: dict = {}
+        self.restored = bool(restored)
+        self.split = split
+        self.cache_dir = cache_dir
+        self._ds = None
 
     def __len__(self) -> int:
         return len(self.images)
 
-    def _scene(self, sid: int):
-        from tdof20.formats import read_scene
+    def dataset(self):
+        from tdof20.formats.dataset import open_dataset
 
-        if sid not in self._scenes:
-            self._scenes[sid] = read_scene(self.root / "scenes" / f"{sid:06d}")
-        return self._scenes[sid]
+        if self._ds is None:
+            self._ds = open_dataset(self.root, self.split, cache_dir=self.cache_dir)
+        return self._ds
 
     def __getitem__(self, n: int) -> dict:
         sid, im = self.images[n]
-        sc = self._scene(sid)
+        ds = self.dataset()
+        sc = ds.scene(sid)
         rgb = sc.rgb(im)
         depth = sc.depth_mm(im).astype(np.float32)
-        s = float(sc.depth_scale(im))
-        rest_path = sc.path / "depth_restored" / f"{im:06d}.png"
-        restored = sc.image("depth_restored", im).astype(np.float32) * s if rest_path.exists() \
-            else np.zeros_like(depth)
+        restored = ds.depth_mm(sid, im, "restored") if self.restored else None
         item = {"rgb": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))),
-                "depth": torch.from_numpy(depth), "depth_restored": torch.from_numpy(restored),
+                "depth": torch.from_numpy(depth),
+                "depth_restored": torch.from_numpy(restored) if restored is not None else None,
                 "K": torch.from_numpy(np.asarray(sc.K(im), dtype=np.float32)), "scene_id": sid, "im_id": im}
         if self.labels:
             h, w = depth.shape
             lab = np.zeros((h, w), np.int64)
             ins = np.zeros((h, w), np.int64)
-            gts = sc.gt[im]
+            gts = sc.gt.get(im, [])
             obj = np.zeros(max(1, len(gts)), np.int64)
             R = np.zeros((max(1, len(gts)), 3, 3), np.float32)
             t = np.zeros((max(1, len(gts)), 3), np.float32)
@@ -304,7 +365,7 @@ class SceneImages(torch.utils.data.Dataset):
 
     def __getstate__(self) -> dict:
         d = dict(self.__dict__)
-        d["_scenes"] = {}
+        d["_ds"] = None
         return d
 
 

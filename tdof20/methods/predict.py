@@ -42,7 +42,7 @@ from tdof20.formats.io import check_parents
 from tdof20.methods.data import HFFTransform, SceneImages, TransformedDataset, backproject, collate, keypoint_table, \
     keypoints_from_json, split_part_images, worker_init
 from tdof20.methods.fitting import kabsch_torch
-from tdof20.methods.train import amp_dtype, load_run, select_device
+from tdof20.methods.train import amp_dtype, load_run, run_classes, select_device
 from tdof20.methods.voting import vote_keypoints_batched
 from tdof20.progress import console, progress as progress_bar
 
@@ -309,8 +309,10 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
     if voting not in VOTING:
         raise TdofError(f"--voting must be one of {', '.join(VOTING)}, got '{voting}'")
-    if not (dataset_root / "dataset_info.json").exists():
-        raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
+    from tdof20.formats.dataset import open_dataset
+
+    ds = open_dataset(dataset_root)  # the one "not a dataset" check
+    bop_split = ds.check_split(split) if ds.layout == "bop" else None
     if images is None:
         images = split_part_images(dataset_root, split, "test", "predict")
     if not images:
@@ -327,11 +329,15 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         net = net.to(memory_format=torch.channels_last)
     image_size = tuple(config["image_size"])
     depth_mode = config["depth_mode"]
-    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
+    class_ids = run_classes(config)  # class c -> object class_ids[c - 1] (a run without a list: c itself)
+    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), classes=class_ids)
     if min_pixels is None:
         min_pixels = default_min_pixels(image_size)
-    data = TransformedDataset(SceneImages(dataset_root, images, labels=masks == "gt"),
-                              HFFTransform(kp_table, image_size, depth_mode, targets=False))
+    if depth_mode == "restored":  # rendered once (cached) where the dataset has none
+        open_dataset(dataset_root, bop_split).render_restored(images, bop_split, show_progress=progress)
+    data = TransformedDataset(SceneImages(dataset_root, images, labels=masks == "gt",
+                                          restored=depth_mode == "restored", split=bop_split),
+                              HFFTransform(kp_table, image_size, depth_mode, targets=False, classes=class_ids))
     loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
                                          num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
                                          pin_memory=dev.type == "cuda")
@@ -375,7 +381,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
             for b in range(B):
                 sid, im = int(batch["scene_id"][b]), int(batch["im_id"][b])
                 for r in res[b]:
-                    rows.append((sid, im, r["obj_id"], r["score"], r["R"], r["t"], per_image))
+                    rows.append((sid, im, class_ids[r["obj_id"] - 1], r["score"], r["R"], r["t"], per_image))
                 n_obj += len(res[b])
             n_img += B
             bar.advance(task, B)
@@ -399,13 +405,22 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
     unions are pooled over the images."""
     if images is None:
         images = split_part_images(dataset_root, split, part, "measure")
+    from tdof20.formats.dataset import open_dataset
+
+    ds = open_dataset(dataset_root)
+    bop_split = ds.check_split(split) if ds.layout == "bop" else None
     dev = select_device(device)
     net, config = load_run(run_dir, dev)
     if not net.has_seg_head:
         raise TdofError("the run has no segmentation head", run_dir)
-    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), config["network"]["n_classes"])
-    data = TransformedDataset(SceneImages(dataset_root, images, labels=True),
-                              HFFTransform(kp_table, config["image_size"], config["depth_mode"], targets=False))
+    classes = run_classes(config)
+    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), classes=classes)
+    if config["depth_mode"] == "restored":
+        ds.render_restored(images, bop_split, show_progress=False)
+    data = TransformedDataset(SceneImages(dataset_root, images, labels=True,
+                                          restored=config["depth_mode"] == "restored", split=bop_split),
+                              HFFTransform(kp_table, config["image_size"], config["depth_mode"], targets=False,
+                                           classes=classes))
     loader = torch.utils.data.DataLoader(data, batch_size=batch_size, num_workers=num_workers, collate_fn=collate,
                                          worker_init_fn=worker_init)
     n = config["network"]["n_classes"]
@@ -424,6 +439,6 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
             correct += int((pred[obj] == lab[obj]).sum())
             total += int(obj.sum())
     union -= inter
-    per_class = {c: float(inter[c]) / max(1, int(union[c])) for c in range(1, n) if present[c]}
+    per_class = {classes[c - 1]: float(inter[c]) / max(1, int(union[c])) for c in range(1, n) if present[c]}
     return {"mean": float(np.mean(list(per_class.values()))) if per_class else 0.0, "per_class": per_class,
             "pixel_accuracy": correct / max(1, total)}

@@ -44,9 +44,9 @@ import torch
 from tdof20.errors import TdofError
 from tdof20.formats import read_json, write_json
 from tdof20.formats.io import check_parents
-from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, N_KEYPOINTS, HFFTransform, TransformedDataset,
-                                 check_depth_mode, collate, keypoints_from_json, keypoints_to_json,
-                                 model_keypoints, split_part_images, worker_init)
+from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_KEYPOINTS, HFFTransform, TransformedDataset,
+                                 check_depth_mode, collate, dataset_classes, identity_classes, keypoints_from_json,
+                                 keypoints_to_json, split_part_images, worker_init)
 from tdof20.methods.hff6dof import HFF6DoF
 from tdof20.methods.losses import hff_loss
 from tdof20.progress import console, progress as progress_bar
@@ -239,6 +239,15 @@ def check_weights(net: HFF6DoF, ckpt: dict, config: dict, path: Path, advice: st
         raise TdofError(f"holds another network than the run's {CONFIG} describes: {'; '.join(why)}{advice}", path)
 
 
+def run_classes(config: dict) -> list[int]:
+    """The object id of each class 1..n of a run (config.json's "classes"; a run recorded without
+    one: ids 1..n_classes-1, class = obj_id)."""
+    classes = config.get("classes")
+    if classes is None:
+        return identity_classes(config["network"]["n_classes"])
+    return [int(c) for c in classes]
+
+
 def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[HFF6DoF, dict]:
     """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
     run_dir = Path(run_dir)
@@ -330,6 +339,7 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
     old_net, new_net = saved.get("network") or {}, new.get("network") or {}
     pairs = [(f"network {k}", old_net.get(k), new_net.get(k)) for k in sorted(set(old_net) | set(new_net))]
     pairs += [(key, saved.get(key), new.get(key)) for key in ("image_size", "depth_mode", "split")]
+    pairs.append(("classes (object ids)", run_classes(saved), run_classes(new)))
     pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
     for key, old, now in pairs:
         if old != now:
@@ -338,7 +348,7 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
 
 
 def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
-               show: bool) -> Path:
+               show: bool, cache_dir: str | Path | None = None) -> Path:
     from tdof20.benchmark.dataset import pack
 
     if shard is not None:
@@ -348,7 +358,7 @@ def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path 
         return path
     path = out_run / "data" / f"{split}_train.h5"
     if rank == 0 and not path.exists():
-        pack(dataset_root, split, "train", path, show_progress=show)
+        pack(dataset_root, split, "train", path, show_progress=show, cache_dir=cache_dir)
     return path
 
 
@@ -362,7 +372,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
           depth_mode: str = DEFAULT_DEPTH_MODE, fuse_stages: int = 3, seg_head: bool = True,
           device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
           seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
-          save_every_s: float = 600.0, progress: bool = True) -> Path:
+          save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None) -> Path:
     """Train (or resume training) HFF6DoF on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
@@ -379,6 +389,11 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
     save_every_s: checkpoint at the end of an epoch when the last checkpoint is older than this many
     seconds (0 = after every epoch), and always when the run ends (a checkpoint holds the model and
     AdamW's two moments: about 680 MB for the default network).
+
+    Any dataset layout (tdof20's, BOP's: ``split`` is then a split folder such as 'train_pbr') and
+    any object ids: classes 1..n map to the dataset's objects (config.json "classes"; a tdof20
+    dataset within ids 1..20 keeps the catalog's 20). Restored depth the dataset lacks is rendered
+    once into ROOT/.cache/ (or ``cache_dir``) when the shard is packed.
     """
     from tdof20.formats.shards import ShardDataset
 
@@ -386,11 +401,14 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
     try:  # the checks before any work
         dataset_root = Path(dataset_root)
         out_run = Path(out_run)
-        if not (dataset_root / "dataset_info.json").exists():
-            raise TdofError("not a tdof20 dataset (no dataset_info.json)", dataset_root)
-        from tdof20.benchmark.splits import SPLITS
-        if split not in SPLITS:
-            raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
+        from tdof20.formats.dataset import open_dataset
+        ds = open_dataset(dataset_root)  # the one "not a dataset" check
+        if ds.layout == "tdof20":
+            from tdof20.benchmark.splits import SPLITS
+            if split not in SPLITS:
+                raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
+        else:
+            split = ds.check_split(split)
         check_depth_mode(depth_mode)
         if lr_schedule not in LR_SCHEDULES:
             raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
@@ -426,8 +444,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
             ckpt = read_checkpoint(ckpt_path, needs=("model", "optimizer", "epoch", "step", "history"), advice=advice)
             with torch.device("meta"):  # shapes only: nothing is allocated
                 check_weights(build_network(saved, out_run / CONFIG), ckpt, saved, ckpt_path, advice)
-                asked = HFF6DoF(n_classes=N_CLASSES, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages,
-                                seg_head=seg_head).config
+                asked = HFF6DoF(n_classes=len(run_classes(saved)) + 1, n_keypoints=N_KEYPOINTS,
+                                fuse_stages=fuse_stages, seg_head=seg_head).config
             # the options that must not change, before the work (a native image size is known later)
             _check_same(saved, {"network": {k: list(v) if isinstance(v, tuple) else v for k, v in asked.items()},
                                 "image_size": saved.get("image_size") if image_size is None else
@@ -458,7 +476,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
             console.print("[yellow]mixed precision is for CUDA devices; training in float32")
         if main:
             out_run.mkdir(parents=True, exist_ok=True)
-        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show)
+        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir)
         if dist is not None:
             dist.barrier(group=wait_group)
         data = ShardDataset(shard_path)
@@ -475,10 +493,12 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
 
         if resume:
             keypoints = keypoints_from_json(saved["keypoints"])
+            classes = run_classes(saved)
         else:
-            keypoints = model_keypoints(dataset_root / "models")
+            keypoints = ds.keypoints()
+            classes = dataset_classes(ds.obj_ids, ds.layout)
         torch.manual_seed(seed)
-        net = HFF6DoF(n_classes=N_CLASSES, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages, seg_head=seg_head)
+        net = HFF6DoF(n_classes=len(classes) + 1, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages, seg_head=seg_head)
         options = dict(batch_size=batch_size, epochs=epochs, lr=lr, lr_schedule=lr_schedule,
                        weight_decay=weight_decay, amp=use_amp, num_workers=num_workers, max_steps=max_steps,
                        seed=seed, backbone_weights=None if backbone_weights is None else str(backbone_weights),
@@ -487,7 +507,9 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                   "network": {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()},
                   "image_size": list(image_size), "depth_mode": depth_mode, "split": split,
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
-                  "keypoints": keypoints_to_json(keypoints), "train": options}
+                  "keypoints": keypoints_to_json(keypoints), "classes": classes,
+                  "objects": {str(o): ds.object_name(o) for o in classes if o in ds.models_info},
+                  "layout": ds.layout, "train": options}
         if resume:
             _check_same(saved, config, out_run / CONFIG)
             net.load_state_dict(ckpt["model"])
@@ -522,7 +544,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
             model = torch.nn.parallel.DistributedDataParallel(
                 model, device_ids=[local_rank] if dev.type == "cuda" else None)
 
-        transform = HFFTransform(keypoints, image_size, depth_mode, targets=True)
+        transform = HFFTransform(keypoints, image_size, depth_mode, targets=True, classes=classes)
         tdata = TransformedDataset(data, transform)
         n = len(tdata)
         per_rank = n // world
