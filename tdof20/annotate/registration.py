@@ -78,8 +78,8 @@ from typing import Any
 import numpy as np
 
 from tdof20.annotate.icp import Pyramid, edge_pairs, icp, icp_prior, point_cloud, pose_graph_pass
-from tdof20.annotate.turntable import (T_diff, check_turntable, crop_points, disk_radius, fit_axis, height_radius,
-                                       load_points, rot_deg, sampled_motion, table_plane, turntable_prior)
+from tdof20.annotate.turntable import (T_diff, VolumeCrop, check_turntable, disk_radius, fit_axis, height_radius,
+                                       rot_deg, sampled_motion, table_plane, turntable_prior)
 from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_json, write_json
@@ -362,7 +362,6 @@ class _Arm:
 
     def __init__(self, arm: int, steps: int):
         self.arm = arm
-        self.points: dict[int, np.ndarray] = {}   # step -> (N,3) loosely cropped points, mm
         self.bad: dict[int, str] = {}             # step -> why it could not be used
         self.plane_n = np.array([0.0, 0.0, -1.0])
         self.plane_d = 0.0
@@ -424,26 +423,25 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     A.axis_dir, A.axis_point = n.copy(), centre - n * (n @ centre + d)
     # --- load every frame, loosely cropped (pass 1 crop) --------------------------------------
     task = prog.add_task(f"arm {arm}: load", total=len(available))
+    crop = VolumeCrop(info.camera, cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm + 100.0)
+    origin = np.zeros(3)
+    full_pyr: dict[int, Pyramid] = {}
     for k in available:
         try:
-            pts = load_points(session, cfg, arm, k)
+            z = session.load_depth_mm(cfg.phase, arm, k)
         except TdofError as e:
             A.bad[k] = str(e)
             prog.advance(task)
             continue
-        pts = crop_points(pts, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm + 100.0, cfg)
-        pts = np.asarray(point_cloud(pts).voxel_down_sample(cfg.voxel_sizes_mm[-1]).points)
-        if len(pts) < cfg.min_points:
-            A.bad[k] = f"too few depth points on the turntable ({len(pts)} < {cfg.min_points})"
-        else:
-            A.points[k] = pts
+        fine = point_cloud(crop.points(z)).voxel_down_sample(cfg.voxel_sizes_mm[-1])
+        if len(fine.points) < cfg.min_points:
+            A.bad[k] = f"too few depth points on the turntable ({len(fine.points)} < {cfg.min_points})"
+        else:   # the finest level as it is (already on its grid), normals, the coarser levels
+            full_pyr[k] = Pyramid(fine, cfg, origin)
         prog.advance(task)
-    usable = sorted(A.points)
+    usable = sorted(full_pyr)
     if len(usable) < 2:
         raise TdofError(f"arm {arm}: fewer than 2 usable {cfg.phase} frames")
-    origin = np.zeros(3)
-
-    full_pyr = {k: Pyramid(A.points[k], cfg, origin) for k in usable}
 
     def pyramids(radius: float) -> dict[int, Pyramid]:
         out = {}

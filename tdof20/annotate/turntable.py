@@ -32,7 +32,7 @@ from tdof20.o3d import o3d
 if TYPE_CHECKING:   # the options' type only: registration imports this module
     from tdof20.annotate.registration import RegistrationConfig
 
-__all__ = ["T_diff", "check_turntable", "crop_points", "disk_radius", "fit_axis", "height_radius", "load_points",
+__all__ = ["T_diff", "VolumeCrop", "check_turntable", "crop_points", "disk_radius", "fit_axis", "height_radius", "load_points",
            "rot_deg", "sampled_motion", "table_plane", "turntable_prior"]
 
 
@@ -108,16 +108,48 @@ def load_points(session: RawSession, cfg: RegistrationConfig, arm: int, step: in
 
 
 def height_radius(pts: np.ndarray, n: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cylinder coordinates of points (N,3) about the axis along unit ``n`` through ``p``: the
+    height along n and the distance from the axis (mm)."""
     d = pts - p
     h = d @ n
-    r = np.linalg.norm(d - h[:, None] * n, axis=1)
-    return h, r
+    r2 = np.einsum("ij,ij->i", d, d) - h * h
+    return h, np.sqrt(np.maximum(r2, 0.0))
 
 
 def crop_points(pts: np.ndarray, n: np.ndarray, p: np.ndarray, radius: float, cfg: RegistrationConfig) -> np.ndarray:
     h, r = height_radius(pts, n, p)
     keep = (h >= -cfg.crop_below_mm) & (h <= cfg.crop_height_mm) & (r <= radius)
     return pts[keep]
+
+
+class VolumeCrop:
+    """The depth points of a frame inside the turntable volume (a cylinder of ``radius`` about the
+    axis along unit ``n`` through ``p``, from ``crop_below_mm`` under the table top to
+    ``crop_height_mm`` above it), straight from the depth image: ``load_points`` then
+    ``crop_points`` in one pass, with the cylinder test on per-pixel maps of the camera's rays
+    (ray.n, ray.p, |ray|^2, computed once per axis) so only the kept pixels become points."""
+
+    def __init__(self, cam, cfg: RegistrationConfig, n: np.ndarray, p: np.ndarray, radius: float):
+        rays = cam.pixel_rays().astype(np.float64)
+        self.cam, self.cfg, self.radius = cam, cfg, float(radius)
+        self.pn = float(np.asarray(p, float) @ np.asarray(n, float))
+        self.pp = float(np.asarray(p, float) @ np.asarray(p, float))
+        self.rn = rays @ np.asarray(n, float)                        # (H,W)
+        self.rp = rays @ np.asarray(p, float)
+        self.rr = np.einsum("hwc,hwc->hw", rays, rays)
+
+    def points(self, z: np.ndarray) -> np.ndarray:
+        """(N,3) float64 points (mm, camera frame) of the depth image ``z`` (mm) inside the volume,
+        in pixel order — the points ``crop_points(load_points(...))`` gives."""
+        cfg = self.cfg
+        z64 = np.asarray(z, np.float64)
+        h = z64 * self.rn - self.pn
+        r2 = z64 * (z64 * self.rr - 2.0 * self.rp) + self.pp - h * h
+        keep = ((z64 >= cfg.min_depth_mm) & (z64 <= cfg.max_depth_mm) & (h >= -cfg.crop_below_mm)
+                & (h <= cfg.crop_height_mm) & (r2 <= self.radius * self.radius))
+        v, u = np.nonzero(keep)
+        zf = np.asarray(z, np.float32)
+        return (self.cam.pixel_rays()[v, u] * zf[v, u, None]).astype(np.float64)
 
 
 def _moving_points(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int]) -> np.ndarray:
