@@ -15,17 +15,29 @@ cluster — the small abstraction the per-frame stages share.
 ``fn`` must be picklable (a module-level function, or an instance of a module-level class whose
 module every worker can import). What a worker should build only once (a ray caster, an opened
 session) goes through :func:`process_cache`: one build per process, whichever executor runs it.
+
+A caller that does not name an executor (``executor=None``) gets the one of the innermost
+:func:`executor_scope` (``"local"`` outside any): how one ``annotate --executor ray`` sends every
+stage's chunks (registration's arm positions as well as the label chunks) to the same cluster
+without each stage's room knowing of it. Inside a scope, a Ray instance is started (or joined)
+once, by the first Ray run, and shut down when the scope ends; inside a Ray task
+(``ray.is_initialized()``) the runs join the task's own cluster, so a task may run its own chunks
+as further tasks (Ray lends a task's CPU to the others while it waits for them).
 """
 
 from __future__ import annotations
 
+import contextvars
 import multiprocessing
 import os
+import pickle
 import signal
 import socket
 from collections import OrderedDict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
 from tdof20.errors import TdofError
@@ -38,6 +50,50 @@ EXECUTORS = ("local", "ray")
 # heavy modules once (see _PRELOAD). Measured in benchmarks/label_speed.py --start-methods.
 START_METHOD = "forkserver"
 _PRELOAD = ["tdof20.annotate.label"]
+
+
+# ---------------------------------------------------------------------------------------------
+# the executor of a scope
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Scope:
+    executor: str
+    ray_address: str | None
+    workers: int | None       # a local Ray instance's CPUs (None: every core)
+    started_ray: bool = False  # this scope started (or joined) Ray: it shuts it down at its end
+
+
+_SCOPE: "contextvars.ContextVar[_Scope | None]" = contextvars.ContextVar("tdof20_executor_scope", default=None)
+
+
+@contextmanager
+def executor_scope(executor: str = "local", ray_address: str | None = None,
+                   workers: int | None = None, start: bool = False) -> Iterator[None]:
+    """Within the block, :func:`run_chunks` calls that name no executor use ``executor`` (and
+    ``ray_address``); the first Ray run starts a local instance of ``workers`` CPUs (None = every
+    core) or joins ``ray_address``, and it stays up until the block ends (one start for all the
+    stages of a run). ``start``: start (or join) Ray on entering already, so that a cluster that
+    cannot be reached is a TdofError before the block runs. Scopes nest; the innermost counts."""
+    if executor not in EXECUTORS:
+        raise TdofError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+    scope = _Scope(executor, ray_address, None if workers is None else resolve_workers(workers))
+    if start and executor == "ray":
+        scope.started_ray = ray_init(ray_address, scope.workers)
+    token = _SCOPE.set(scope)
+    try:
+        yield
+    finally:
+        _SCOPE.reset(token)
+        if scope.started_ray:
+            import ray
+
+            ray.shutdown()
+
+
+def current_executor() -> tuple[str, str | None]:
+    """(executor, ray_address) of the innermost :func:`executor_scope`; ("local", None) outside."""
+    scope = _SCOPE.get()
+    return ("local", None) if scope is None else (scope.executor, scope.ray_address)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,8 +187,11 @@ def _run_local(fn: Callable, chunks: list, workers: int, start_method: str | Non
 # ---------------------------------------------------------------------------------------------
 # Ray
 # ---------------------------------------------------------------------------------------------
-def _ray_task(fn: Callable, chunk: Any) -> Any:
-    return fn(chunk)
+def _ray_task(fn: Callable, chunk: Any) -> bytes:
+    # pickled here, unpickled by the caller: Ray hands numpy arrays out of its object store
+    # read-only (zero copy), and a caller that fills or edits a result in place (open3d's
+    # Vector3dVector, for one) must get the same writable arrays as from the other executors
+    return pickle.dumps(fn(chunk), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def _probe(address: str, timeout: float = 5.0) -> None:
@@ -153,23 +212,38 @@ def _first_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
-def _run_ray(fn: Callable, chunks: list, workers: int | None, address: str | None, advance) -> Iterator:
+def ray_init(address: str | None = None, num_cpus: int | None = None) -> bool:
+    """Start a local Ray instance (``address`` None; ``num_cpus`` None = every core) or connect to
+    the cluster at ``address``, unless Ray is up already in this process (a driver that started
+    it, or a Ray task). True when this call started it (the caller then shuts it down).
+    A cluster that cannot be reached -> TdofError "cannot reach the Ray cluster at ADDR: ..."."""
     try:
         import ray
     except ImportError:
         raise TdofError("executor 'ray' needs the ray package: pip install 'ray==2.60.0'") from None
-    own = not ray.is_initialized()
-    if own:
-        where = address or "a new local instance"
-        if address:
-            _probe(address)
-        kwargs = {"log_to_driver": False}
-        if not address:
-            kwargs.update(include_dashboard=False, num_cpus=workers)
-        try:
-            ray.init(address=address, **kwargs)
-        except Exception as e:  # Ray raises ConnectionError, RuntimeError, ValueError ...
-            raise TdofError(f"cannot reach the Ray cluster at {where}: {_first_line(e)}") from None
+    if ray.is_initialized():
+        return False
+    where = address or "a new local instance"
+    if address:
+        _probe(address)
+    kwargs = {"log_to_driver": False}
+    if not address:
+        kwargs.update(include_dashboard=False, num_cpus=num_cpus)
+    try:
+        ray.init(address=address, **kwargs)
+    except Exception as e:  # Ray raises ConnectionError, RuntimeError, ValueError ...
+        raise TdofError(f"cannot reach the Ray cluster at {where}: {_first_line(e)}") from None
+    return True
+
+
+def _run_ray(fn: Callable, chunks: list, workers: int | None, address: str | None, advance) -> Iterator:
+    scope = _SCOPE.get()
+    in_scope = scope is not None and scope.executor == "ray"
+    own = ray_init(address, scope.workers if in_scope else workers)
+    if own and in_scope:
+        scope.started_ray, own = True, False   # the scope shuts it down when it ends
+    import ray
+
     running: dict = {}
     try:
         task = ray.remote(num_cpus=1)(_ray_task)
@@ -185,7 +259,7 @@ def _run_ray(fn: Callable, chunks: list, workers: int | None, address: str | Non
             for ref in done:
                 i = running.pop(ref)
                 try:
-                    result = ray.get(ref)
+                    result = pickle.loads(ray.get(ref))
                 except ray.exceptions.RayTaskError as e:
                     cause = e.as_instanceof_cause()
                     if isinstance(cause, TdofError):
@@ -222,7 +296,7 @@ def resolve_workers(workers: int | None) -> int:
     return int(workers)
 
 
-def run_chunks(fn: Callable[[Any], Any], chunks: Iterable, executor: str = "local", workers: int | None = None,
+def run_chunks(fn: Callable[[Any], Any], chunks: Iterable, executor: str | None = None, workers: int | None = None,
                ray_address: str | None = None, progress: bool = False, description: str = "chunks",
                size: Callable[[Any], int] = lambda c: 1, unit: str = "it",
                start_method: str | None = None) -> Iterator[Any]:
@@ -230,11 +304,15 @@ def run_chunks(fn: Callable[[Any], Any], chunks: Iterable, executor: str = "loca
 
     executor: "local" (worker processes; ``workers`` None = os.cpu_count(), 1 = in this process)
     or "ray" (``ray_address`` None starts a local Ray instance; ``workers`` then caps its CPUs
-    and the tasks in flight). ``progress``: a rich bar advanced by ``size(chunk)`` per finished
+    and the tasks in flight); None: the innermost :func:`executor_scope`'s (and its
+    ``ray_address`` when none is given), "local" outside any. ``progress``: a rich bar advanced by ``size(chunk)`` per finished
     chunk (e.g. ``size=len`` to count frames). An exception raised by ``fn`` stops the run and is
     raised here (the remaining chunks are cancelled); catch per-item errors inside ``fn``.
     A Ray cluster that cannot be reached -> TdofError "cannot reach the Ray cluster at ADDR: ...".
     """
+    if executor is None:
+        executor, scope_address = current_executor()
+        ray_address = ray_address or scope_address
     if executor not in EXECUTORS:
         raise TdofError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
     chunks = list(chunks)
@@ -258,4 +336,5 @@ def run_chunks(fn: Callable[[Any], Any], chunks: Iterable, executor: str = "loca
         yield from _run_local(fn, chunks, n, start_method, advance)
 
 
-__all__ = ["EXECUTORS", "START_METHOD", "run_chunks", "process_cache", "resolve_workers"]
+__all__ = ["EXECUTORS", "START_METHOD", "current_executor", "executor_scope", "process_cache", "ray_init",
+           "resolve_workers", "run_chunks"]

@@ -61,6 +61,12 @@ Options (:class:`~tdof20.annotate.config.AnnotateConfig`) come from a TOML file
 ``[build]`` (ModelBuildConfig), ``[place]`` (PlaceConfig), ``[label]`` (LabelConfig), ``[qa]``
 (QAConfig) — and top-level ``fuse_max_frames``, ``fuse_crop``, ``fuse_max_height_mm``; an unknown
 key is an error naming the file and the key. See ``docs/annotate.md``.
+
+Where the work runs: ``cfg.label.executor``, ``workers`` and ``ray_address`` (the CLI's
+``--executor``, ``--workers``, ``--ray-address``) hold for the whole run — an
+:func:`~tdof20.annotate.executors.executor_scope` around the stages sends the registration's arm
+positions as well as the label chunks there, with one Ray start for the run. Many sessions in
+one call, scenes side by side on local workers or as Ray tasks: :mod:`tdof20.annotate.batch`.
 """
 
 from __future__ import annotations
@@ -73,6 +79,7 @@ from typing import Any, Iterable
 # (``from tdof20.annotate.pipeline import AnnotateConfig, load_annotate_config``) keeps working
 from tdof20.annotate.config import (AnnotateConfig, PlaceConfig, QAConfig, annotate_config_from_dict,
                                     load_annotate_config)
+from tdof20.annotate.executors import executor_scope
 from tdof20.annotate.registration import RegistrationResult
 from tdof20.annotate.stages import STAGE_RECORDS, STAGES, MissingInput, StageContext, parse_stages
 from tdof20.annotate.state import (WORK, FolderLock, StateFile, clear_scene, remove_stale_temp_files,
@@ -80,8 +87,8 @@ from tdof20.annotate.state import (WORK, FolderLock, StateFile, clear_scene, rem
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
 
-__all__ = ["STAGES", "AnnotateConfig", "PlaceConfig", "QAConfig", "annotate", "load_annotate_config",
-           "annotate_config_from_dict", "parse_stages", "summary_text"]
+__all__ = ["STAGES", "AnnotateConfig", "PlaceConfig", "QAConfig", "annotate", "check_models_dir", "check_out",
+           "load_annotate_config", "annotate_config_from_dict", "parse_stages", "summary_text"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -128,6 +135,35 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
 
 
 # ---------------------------------------------------------------------------------------------
+# the checks before anything is written
+# ---------------------------------------------------------------------------------------------
+def check_models_dir(models_dir: Path | None) -> None:
+    """A ``--models`` folder that is not there -> TdofError naming it."""
+    if models_dir is not None and not Path(models_dir).is_dir():
+        raise TdofError("no such models folder (--models: a BOP models folder in mm)", models_dir)
+
+
+def check_out(raw: Path, out: Path, session: RawSession | None = None, force: bool = False) -> None:
+    """Refuse a scene folder ``out`` that annotate must not write (TdofError, one line naming it):
+    a file, a non-empty folder without an annotate run in it, the raw session or a folder inside
+    it; with ``session`` also a folder holding another session's annotation (unless ``force``) —
+    read without the folder's lock, so the run itself checks that again under it."""
+    raw, out = Path(raw), Path(out)
+    if out.exists() and not out.is_dir():
+        raise TdofError("is not a folder", out)
+    state = out / WORK / "state.json"
+    if out.exists() and any(out.iterdir()) and not state.exists():
+        raise TdofError("folder is not empty and holds no annotate run (no work/state.json); choose another --out", out)
+    if out.resolve() == raw.resolve() or raw.resolve() in out.resolve().parents:
+        raise TdofError("--out must not be the raw session or inside it", out)
+    if session is not None and not force and state.exists():
+        recorded = StateFile(out / WORK, raw.resolve()).data.get("session")
+        if recorded is not None and recorded != session_identity(session):
+            raise TdofError(f"holds the annotation of another session ({recorded.get('scene_id')}); choose another "
+                            f"--out, or give --force to replace it", out)
+
+
+# ---------------------------------------------------------------------------------------------
 # the pipeline
 # ---------------------------------------------------------------------------------------------
 def annotate(raw_dir: str | Path, out_dir: str | Path, models_dir: str | Path | None = None,
@@ -152,19 +188,16 @@ def annotate(raw_dir: str | Path, out_dir: str | Path, models_dir: str | Path | 
     session = RawSession.open(raw)
     chosen = parse_stages(stages)
     md = None if models_dir is None else Path(models_dir)
-    if md is not None and not md.is_dir():
-        raise TdofError("no such models folder (--models: a BOP models folder in mm)", md)
-    if out.exists() and not out.is_dir():
-        raise TdofError("is not a folder", out)
-    if out.exists() and any(out.iterdir()) and not (out / WORK / "state.json").exists():
-        raise TdofError("folder is not empty and holds no annotate run (no work/state.json); choose another --out", out)
-    if out.resolve() == raw.resolve() or raw.resolve() in out.resolve().parents:
-        raise TdofError("--out must not be the raw session or inside it", out)
+    check_models_dir(md)
+    check_out(raw, out)
     ctx = StageContext(raw, out, md, cfg, session, progress)
     ctx.work.mkdir(parents=True, exist_ok=True)
     run: dict[str, dict] = {}
     warnings: list[str] = []
-    with FolderLock(ctx.work):
+    # the stages' chunks (registration's arm positions, the label chunks) go where --executor says;
+    # one Ray start for the whole run (or this Ray task's own cluster)
+    scope = executor_scope(cfg.label.executor, cfg.label.ray_address, cfg.label.workers)
+    with FolderLock(ctx.work), scope:
         state = StateFile(ctx.work, raw.resolve())
         identity = session_identity(session)
         recorded = state.data.get("session")

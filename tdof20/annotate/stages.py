@@ -23,6 +23,7 @@ call the stage's room and write its results:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +42,8 @@ from tdof20.annotate.state import WORK, count_files, dir_hash, sha_file, sha_obj
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
 
-__all__ = ["STAGES", "STAGE_RECORDS", "MissingInput", "Stage", "StageContext", "parse_stages", "stage"]
+__all__ = ["STAGES", "STAGE_RECORDS", "MissingInput", "Stage", "StageContext", "one_open3d_thread", "parse_stages",
+           "stage"]
 
 # label options that change how the work runs, not what it writes
 _LABEL_RUNTIME = ("workers", "executor", "ray_address", "chunk")
@@ -135,6 +137,28 @@ class StageContext:
         the outputs of the stages it needs, and its own inputs."""
         s = stage(name)
         return {"raw": self.raw_fingerprint(), "upstream": {u: self.outputs(u) for u in s.needs}, **s.inputs(self)}
+
+
+def one_open3d_thread(run: Callable[["StageContext"], dict]) -> Callable[["StageContext"], dict]:
+    """A stage body run with open3d on one OpenMP thread (restored after). open3d's feature RANSAC
+    shares one random generator among its threads and its ICP sums in thread order, so with more
+    than one the model stage's fits (and the placements and labels after them) differed in the
+    last digits from run to run, and between this process and a worker. ``OMP_NUM_THREADS`` does
+    not reach open3d's own OpenMP (``get_max_threads()`` stays at the core count); its
+    ``set_max_threads`` does. The cost is small: these stages fit a few clusters."""
+
+    @functools.wraps(run)
+    def wrapped(ctx: "StageContext") -> dict:
+        from tdof20.o3d import o3d
+
+        before = o3d.utility.get_max_threads()
+        o3d.utility.set_max_threads(1)
+        try:
+            return run(ctx)
+        finally:
+            o3d.utility.set_max_threads(before)
+
+    return wrapped
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,7 +307,8 @@ def _model_outputs(ctx: StageContext) -> dict:
     return out
 
 
-MODEL = Stage("model", needs=("reconstruct",), run=_model, inputs=_model_inputs, outputs=_model_outputs)
+MODEL = Stage("model", needs=("reconstruct",), run=one_open3d_thread(_model), inputs=_model_inputs,
+              outputs=_model_outputs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -338,7 +363,8 @@ def _place_outputs(ctx: StageContext) -> dict:
             "models": dir_hash(ctx.out / "models")}
 
 
-PLACE = Stage("place", needs=("reconstruct", "model"), run=_place, inputs=_place_inputs, outputs=_place_outputs)
+PLACE = Stage("place", needs=("reconstruct", "model"), run=one_open3d_thread(_place), inputs=_place_inputs,
+              outputs=_place_outputs)
 
 
 # ---------------------------------------------------------------------------------------------
