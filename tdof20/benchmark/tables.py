@@ -1,0 +1,738 @@
+"""The paper's tables from score dicts and profile records (``tdof20 reproduce``'s last stage).
+
+Pure functions: nothing here trains, predicts or scores. The inputs are
+
+- :class:`Entry` — one scored result: a column title (``label``), the registry's method name, the
+  protocol ('simple' | 'hard'), the dict :func:`tdof20.benchmark.scoring.score` returns (optionally
+  with ``"curves"``, see :func:`curves_from_evaluation`) and whether ground-truth masks picked the
+  object pixels (``oracle_masks``);
+- profile records of :func:`tdof20.methods.profile.profile_method` (Table 3).
+
+and the outputs are plain structures (``protocol_table`` ...) rendered as Markdown, CSV and JSON by
+:func:`write_tables`::
+
+    Table 1   ADD(S) accuracy (%), rows = objects by name (asymmetric ones bold and marked *, as the
+              paper bolds them), then the mean over objects; columns = methods x {simple, hard}
+    Table 2   the same for the 2D projection accuracy (%)
+    Table 3   parameters, multiply-adds at 480x640, FPS (network and pose recovery apart) on this
+              device, beside the paper's figures
+    ablation  fused stages 1..5 on hard (ADD(S), 2D projection); segmentation head on / off
+    agreement the paper's stated figures beside ours, and a computed yes / no per claim
+
+Conventions: the best value of a row is bold per protocol (the paper compares methods, never
+simple against hard); a result made with ground-truth masks carries "(oracle masks)" wherever it
+appears and never takes the bold (it is not a valid submission); a cell without a result is "—".
+How each agreement claim is judged is in :data:`CLAIMS` (and docs/reproduce.md).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tdof20.errors import TdofError
+
+SPLITS = ("simple", "hard")
+MISSING = "—"
+ORACLE = "oracle masks"
+KEY_TITLES = {"add_s": "ADD(S)", "proj2d": "2D projection"}
+TABLE_TITLES = {
+    "add_s": "Table 1 — ADD(S) accuracy (%): mean model-point distance < 10 % of the diameter (closest point "
+             "for symmetric objects)",
+    "proj2d": "Table 2 — 2D projection accuracy (%): mean reprojection distance < 5 px",
+}
+
+#: the paper's stated figures (sections 5.4-5.5); accuracies as fractions
+PAPER = {
+    "hff6dof_hard_add_s": 0.5050,          # "an average ADD of 50.5 %"; "the highest ADD of 50.50 %" (3 fused)
+    "add_s_over_densefusion_hard": 0.0713,  # "7.13 % higher ADD accuracy on TDoF20-hard compared to DenseFusion"
+    "proj2d_over_ffb6d_hard": 0.1191,      # "2D projection ... 11.91 % higher than that of FFB6DoF"
+    "hff6dof_fps": 29.38,                  # on a GTX 1080Ti
+    "hff6dof_parameters_M": 56.82,
+    "macs_G": {"hff6dof": 85.12, "densefusion": 142.25, "ffb6d": 215.54},
+    "seg_gain_add_s": 0.0852,
+    "seg_gain_proj2d": 0.0263,
+    "best_fuse_stages": 3,
+    "gpu": "GTX 1080Ti",
+}
+#: how close a figure must be to the paper's to "agree"
+TOLERANCE = {"accuracy_pp": 5.0,    # percentage points, for accuracies and margins
+             "parameters_rel": 0.01,  # relative, parameters
+             "macs_rel": 0.10,        # relative, multiply-adds
+             "fps_rel": 0.10}         # ours at least (1 - this) x the paper's FPS
+#: the claims :func:`agreement` judges, and how
+CLAIMS = {
+    "hff6dof_hard_add_s": "HFF6DoF's mean ADD(S) on TDoF20-hard is 50.50 %: yes when ours is within "
+                          "±5 percentage points",
+    "hff6dof_best_add_s_hard": "HFF6DoF has the best mean ADD(S) on TDoF20-hard, 7.13 % above DenseFusion, the best "
+                               "of the others: yes when HFF6DoF is first and DenseFusion second",
+    "hff6dof_best_proj2d_hard": "HFF6DoF has the best mean 2D projection on TDoF20-hard, 11.91 % above FFB6D, the "
+                                "best of the others: yes when HFF6DoF is first and FFB6D second",
+    "simple_above_hard": "every method scores a higher mean ADD(S) trained and tested on TDoF20-simple than on "
+                         "TDoF20-hard: yes when it holds for every method with both",
+    "hff6dof_fps": "HFF6DoF runs at 29.38 FPS (GTX 1080Ti): yes when ours, end to end on this device, is at least "
+                   "90 % of it",
+    "hff6dof_parameters": "HFF6DoF has 56.82 M parameters: yes within 1 %",
+    "macs_hff6dof": "HFF6DoF: 85.12 G multiply-adds at 480x640: yes within 10 %",
+    "macs_densefusion": "DenseFusion: 142.25 G multiply-adds at 480x640: yes within 10 %",
+    "macs_ffb6d": "FFB6D: 215.54 G multiply-adds at 480x640: yes within 10 %",
+    "macs_order": "HFF6DoF needs the fewest multiply-adds, then DenseFusion, then FFB6D: yes when our counts rank so",
+    "seg_gain_add_s": "the segmentation module adds 8.52 % ADD(S) (hard): yes when ours is a gain (> 0)",
+    "seg_gain_proj2d": "the segmentation module adds 2.63 % 2D projection (hard): yes when ours is a gain (> 0)",
+    "best_fuse_stages": "3 fused stages give the best ADD(S) on TDoF20-hard: yes when 3 is our best of the "
+                        "stages run",
+}
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One scored result. label: the column title ("HFF6DoF", "HFF6DoF 3D voting + LSQ"); method:
+    the registry's name ('hff6dof', 'pvnet', ...); split: 'simple' | 'hard'; scores: the dict of
+    :func:`~tdof20.benchmark.scoring.score`; oracle_masks: ground-truth masks picked the object
+    pixels; note: a short remark printed under the table."""
+
+    label: str
+    method: str
+    split: str
+    scores: Mapping[str, Any]
+    oracle_masks: bool = False
+    note: str = ""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.split not in SPLITS:
+            raise TdofError(f"result '{self.label}': split must be simple or hard, got '{self.split}'")
+        if not isinstance(self.scores, Mapping) or "objects" not in self.scores or "mean" not in self.scores:
+            raise TdofError(f"result '{self.label}' ({self.split}): not a score dict (needs 'objects' and 'mean')")
+
+    def value(self, key: str, obj_id: int | None = None) -> float | None:
+        """The score ``key`` of one object (None: the mean over objects); None where absent."""
+        d = self.scores["mean"] if obj_id is None else self.scores["objects"].get(str(int(obj_id)))
+        if not d or d.get("n", 1) == 0:
+            return None
+        v = d.get(key)
+        return None if v is None else float(v)
+
+    @property
+    def title(self) -> str:
+        return f"{self.label} · {self.split}" + (f" ({ORACLE})" if self.oracle_masks else "")
+
+
+# --------------------------------------------------------------------------------------------
+# objects
+
+
+def catalog_objects(obj_ids: Sequence[int]) -> dict[int, tuple[str, bool]]:
+    """obj_id -> (name, asymmetric?) from the catalog for ids 1..20; 'obj_NNNNNN' (symmetry unknown:
+    not marked) otherwise."""
+    from tdof20.objects import get_object
+
+    out = {}
+    for o in sorted({int(i) for i in obj_ids}):
+        if 1 <= o <= 20:
+            ob = get_object(o)
+            out[o] = (ob.name, not bool(ob.symmetric))
+        else:
+            out[o] = (f"obj_{o:06d}", False)
+    return out
+
+
+def models_info_objects(models_info: Mapping, names: Mapping[int, str] | None = None) -> dict[int, tuple[str, bool]]:
+    """obj_id -> (name, asymmetric?) from a BOP models_info (symmetric = any symmetries given);
+    names from ``names`` or the catalog for ids 1..20."""
+    cat = catalog_objects([int(k) for k in models_info])
+    out = {}
+    for k, e in models_info.items():
+        o = int(k)
+        sym = bool(e.get("symmetries_continuous")) or bool(e.get("symmetries_discrete"))
+        out[o] = ((names or {}).get(o) or cat[o][0], not sym)
+    return out
+
+
+def _object_ids(entries: Sequence[Entry]) -> list[int]:
+    return sorted({int(k) for e in entries for k, v in e.scores["objects"].items() if v.get("n", 1) > 0})
+
+
+# --------------------------------------------------------------------------------------------
+# Tables 1 and 2
+
+
+def _pct(v: float | None, digits: int = 2) -> str:
+    return MISSING if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.{digits}f}"
+
+
+def _best(values: Sequence[float | None], eligible: Sequence[bool]) -> list[bool]:
+    """Bold flags: the maximum of the eligible values (ties at the top all bold), when at least two
+    compete and they are not all equal."""
+    cand = [v for v, ok in zip(values, eligible) if ok and v is not None]
+    if len(cand) < 2 or max(cand) - min(cand) < 1e-12:  # one result, or all alike: nobody is best
+        return [False] * len(values)
+    top = max(cand)
+    return [bool(ok and v is not None and abs(v - top) < 1e-12) for v, ok in zip(values, eligible)]
+
+
+def columns(entries: Sequence[Entry]) -> list[tuple[str, str]]:
+    """(label, split) columns: labels in order of first appearance, each with simple then hard."""
+    labels: list[str] = []
+    for e in entries:
+        if e.label not in labels:
+            labels.append(e.label)
+    return [(lab, s) for lab in labels for s in SPLITS]
+
+
+def protocol_table(entries: Sequence[Entry], key: str = "add_s",
+                   objects: Mapping[int, tuple[str, bool]] | None = None) -> dict:
+    """Table 1 (``key`` 'add_s') or 2 ('proj2d') as a plain dict:
+    {"key", "title", "columns": [{"label", "split", "method", "oracle_masks", "present"}],
+    "rows": [{"obj_id", "name", "asymmetric", "values", "bold"}] (objects by id, then the mean row
+    with obj_id None), "notes"}. Values are fractions or None (no result / object not tested);
+    bold = the best per row within each protocol, among results without oracle masks."""
+    if key not in KEY_TITLES:
+        raise TdofError(f"unknown table key '{key}' (known: {', '.join(KEY_TITLES)})")
+    by = {}
+    for e in entries:
+        if (e.label, e.split) in by:
+            raise TdofError(f"two results for '{e.label}' on {e.split}")
+        by[(e.label, e.split)] = e
+    cols = columns(entries)
+    ids = _object_ids(entries)
+    objs = dict(catalog_objects(ids))
+    objs.update({int(k): v for k, v in (objects or {}).items()})
+    col_info = []
+    for lab, s in cols:
+        e = by.get((lab, s))
+        col_info.append({"label": lab, "split": s, "method": None if e is None else e.method,
+                         "oracle_masks": bool(e is not None and e.oracle_masks), "present": e is not None})
+
+    def row(obj_id):
+        vals = [None if (lab, s) not in by else by[(lab, s)].value(key, obj_id) for lab, s in cols]
+        bold = [False] * len(cols)
+        for s in SPLITS:
+            idx = [i for i, (_, sp) in enumerate(cols) if sp == s]
+            flags = _best([vals[i] for i in idx], [not col_info[i]["oracle_masks"] for i in idx])
+            for i, f in zip(idx, flags):
+                bold[i] = f
+        return vals, bold
+
+    rows = []
+    for o in ids:
+        vals, bold = row(o)
+        name, asym = objs.get(o, (f"obj_{o:06d}", False))
+        rows.append({"obj_id": o, "name": name, "asymmetric": bool(asym), "values": vals, "bold": bold})
+    vals, bold = row(None)
+    n_obj = max((int(e.scores["mean"].get("n", 0)) for e in entries), default=0)
+    rows.append({"obj_id": None, "name": f"mean ({n_obj} objects)", "asymmetric": False, "values": vals,
+                 "bold": bold})
+    notes = ["Bold object names (marked *) are asymmetric: their ADD(S) is the stricter ADD; the others are "
+             "symmetric (ADD-S). Bold values: the best of each row within each protocol.",
+             f"{MISSING}: no result for that method and protocol, or the object is not in its test part."]
+    if any(c["oracle_masks"] for c in col_info):
+        notes.append(f"({ORACLE}): ground-truth masks picked each object's pixels — an oracle segmentation, not a "
+                     "valid submission; such results never take the bold.")
+    notes += [f"{e.title}: {e.note}" for e in entries if e.note]
+    return {"key": key, "title": TABLE_TITLES[key], "columns": col_info, "rows": rows, "notes": notes}
+
+
+def _md_cell(v, bold: bool) -> str:
+    t = _pct(v)
+    return f"**{t}**" if bold and v is not None else t
+
+
+def _col_title(c: Mapping) -> str:
+    return f"{c['label']} · {c['split']}" + (f" ({ORACLE})" if c["oracle_masks"] else "")
+
+
+def protocol_markdown(table: Mapping) -> str:
+    """Markdown of :func:`protocol_table`'s dict."""
+    cols = table["columns"]
+    out = [f"**{table['title']}**", "", "| object | " + " | ".join(_col_title(c) for c in cols) + " |",
+           "| --- |" + " ---: |" * len(cols)]
+    for r in table["rows"]:
+        name = f"**{r['name']}** \\*" if r["asymmetric"] else r["name"]
+        out.append(f"| {name} | " + " | ".join(_md_cell(v, b) for v, b in zip(r["values"], r["bold"])) + " |")
+    return "\n".join(out + [""] + table["notes"])
+
+
+def _csv(rows: Sequence[Sequence[Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    for r in rows:
+        w.writerow(["" if v is None else v for v in r])
+    return buf.getvalue()
+
+
+def _num(v: float | None, scale: float = 100.0, digits: int = 4) -> float | None:
+    return None if v is None else round(scale * float(v), digits)
+
+
+def protocol_csv(table: Mapping) -> str:
+    """CSV: obj_id, object, asymmetric, one column per method/protocol (percent; empty = no result),
+    the mean row last (obj_id empty)."""
+    cols = table["columns"]
+    head = ["obj_id", "object", "asymmetric"] + [
+        f"{c['label']}/{c['split']}" + (f" ({ORACLE})" if c["oracle_masks"] else "") for c in cols]
+    rows = [head] + [[r["obj_id"], r["name"], int(r["asymmetric"])] + [_num(v) for v in r["values"]]
+                     for r in table["rows"]]
+    return _csv(rows)
+
+
+# --------------------------------------------------------------------------------------------
+# Table 3
+
+
+def _paper_of(p: Mapping) -> dict:
+    paper = dict(p.get("paper") or {})
+    m = str(p.get("method", ""))
+    if m in PAPER["macs_G"]:
+        paper.setdefault("macs_G", PAPER["macs_G"][m])
+    if m == "hff6dof":
+        paper.setdefault("parameters_M", PAPER["hff6dof_parameters_M"])
+        paper.setdefault("fps", PAPER["hff6dof_fps"])
+    return paper
+
+
+def efficiency_table(profiles: Sequence[Mapping]) -> dict:
+    """Table 3 from profile records: {"title", "rows": [{"method", "device", "parameters_M",
+    "paper_parameters_M", "macs_G", "paper_macs_G", "network_ms", "network_fps", "pose_ms",
+    "end_to_end_ms", "end_to_end_fps", "paper_fps", "input", "error"}], "notes"}."""
+    rows, devices = [], []
+    for p in profiles:
+        paper = _paper_of(p)
+        r = {"method": p.get("method"), "device": p.get("device"), "error": p.get("error"),
+             "parameters_M": p.get("parameters_M"), "paper_parameters_M": paper.get("parameters_M"),
+             "macs_G": p.get("macs_480x640_G"), "paper_macs_G": paper.get("macs_G"),
+             "network_ms": p.get("network_ms"), "network_fps": p.get("network_fps"), "pose_ms": p.get("pose_ms"),
+             "end_to_end_ms": p.get("end_to_end_ms"), "end_to_end_fps": p.get("end_to_end_fps"),
+             "paper_fps": paper.get("fps"), "input": p.get("input"), "amp": p.get("amp")}
+        if r["device"] and r["device"] not in devices:
+            devices.append(r["device"])
+        rows.append(r)
+    notes = [f"Ours: measured on {', '.join(devices) or 'this device'} (untrained networks; pose recovery = end to "
+             "end − network); the paper's FPS are on a " + PAPER["gpu"] + ". Multiply-adds at 480x640 "
+             "(FlopCounterMode / 2), the paper's 'FLOPs' read as multiply-adds."]
+    return {"title": "Table 3 — parameters, multiply-adds at 480x640 and speed", "rows": rows, "notes": notes}
+
+
+def _f(v, spec: str = ".2f") -> str:
+    if v is None:
+        return MISSING
+    if isinstance(v, float) and math.isinf(v):
+        return "∞"
+    return format(v, spec)
+
+
+def efficiency_markdown(table: Mapping) -> str:
+    out = [f"**{table['title']}**", "",
+           "| method | parameters M (paper) | multiply-adds G (paper) | network ms | network FPS | "
+           "pose recovery ms | end-to-end FPS (paper) | input B×H×W |",
+           "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for r in table["rows"]:
+        if r.get("error"):
+            out.append(f"| {r['method']} | error: {r['error']} |" + " |" * 6)
+            continue
+        pp = f" ({_f(r['paper_parameters_M'])})" if r["paper_parameters_M"] is not None else ""
+        pm = f" ({_f(r['paper_macs_G'])})" if r["paper_macs_G"] is not None else ""
+        pf = f" ({_f(r['paper_fps'])})" if r["paper_fps"] is not None else ""
+        inp = "×".join(str(v) for v in r["input"]) if r.get("input") else MISSING
+        out.append(f"| {r['method']} | {_f(r['parameters_M'])}{pp} | {_f(r['macs_G'])}{pm} | "
+                   f"{_f(r['network_ms'], '.1f')} | {_f(r['network_fps'])} | {_f(r['pose_ms'], '.1f')} | "
+                   f"{_f(r['end_to_end_fps'])}{pf} | {inp} |")
+    return "\n".join(out + [""] + table["notes"])
+
+
+def efficiency_csv(table: Mapping) -> str:
+    keys = ["method", "device", "parameters_M", "paper_parameters_M", "macs_G", "paper_macs_G", "network_ms",
+            "network_fps", "pose_ms", "end_to_end_ms", "end_to_end_fps", "paper_fps", "error"]
+    return _csv([keys] + [[r.get(k) for k in keys] for r in table["rows"]])
+
+
+# --------------------------------------------------------------------------------------------
+# ablations
+
+
+def _ablation_rows(items: Sequence[tuple[str, Entry | None]]) -> list[dict]:
+    rows = []
+    for name, e in items:
+        rows.append({"setting": name, "label": None if e is None else e.label,
+                     "oracle_masks": bool(e is not None and e.oracle_masks),
+                     "n": None if e is None else e.scores["mean"].get("n"),
+                     "add_s": None if e is None else e.value("add_s"),
+                     "proj2d": None if e is None else e.value("proj2d")})
+    for k in ("add_s", "proj2d"):
+        flags = _best([r[k] for r in rows], [not r["oracle_masks"] for r in rows])
+        for r, f in zip(rows, flags):
+            r[f"{k}_bold"] = f
+    return rows
+
+
+def fusion_table(by_stages: Mapping[int, Entry]) -> dict:
+    """The fusion-layer ablation on TDoF20-hard: one row per number of fused stages 1..5 (missing
+    ones "—"), ADD(S) and 2D projection (means over objects), best bold."""
+    bad = [k for k in by_stages if int(k) not in range(1, 6)]
+    if bad:
+        raise TdofError(f"fused stages must be 1..5, got {bad}")
+    rows = _ablation_rows([(f"{k} fused stage{'s' if k > 1 else ''}" + (" (the paper's)" if k == 3 else ""),
+                            by_stages.get(k)) for k in range(1, 6)])
+    for k, r in zip(range(1, 6), rows):
+        r["fuse_stages"] = k
+    notes = ["Only the fusion changes between rows; the decoder's skip connections come from the fused stages, so "
+             "the skips change with it (1 = layer4 only, 5 = stem..layer4); the decoder's widths do not.",
+             "Paper: the highest ADD of 50.50 % with three fused stages, stable after."]
+    if any(r["oracle_masks"] for r in rows):
+        notes.append(f"({ORACLE}): ground-truth masks picked the object pixels.")
+    return {"title": "Ablation — fused stages on TDoF20-hard (HFF6DoF)", "rows": rows, "notes": notes}
+
+
+def segmentation_table(on: Entry | None, off: Entry | None) -> dict:
+    """The segmentation-module ablation: with the head, without it, and the gain (on - off)."""
+    off_name = "without segmentation head"
+    if off is not None and off.oracle_masks:
+        off_name += f" ({ORACLE})"
+    rows = _ablation_rows([("with segmentation head", on), (off_name, off)])
+    gain = {k: (None if on is None or off is None or on.value(k) is None or off.value(k) is None
+                else on.value(k) - off.value(k)) for k in ("add_s", "proj2d")}
+    notes = ["Paper: the segmentation module adds 8.52 % ADD and 2.63 % 2D projection."]
+    if off is not None and off.oracle_masks:
+        notes.append(f"Without the head, ground-truth masks ({ORACLE}) pick each object's pixels: the row without "
+                     "the head is given a perfect segmentation, so the gain measured is a lower bound of what the "
+                     "head brings over a real alternative.")
+    return {"title": "Ablation — segmentation module on TDoF20-hard (HFF6DoF)", "rows": rows, "gain": gain,
+            "notes": notes}
+
+
+def ablation_markdown(table: Mapping) -> str:
+    out = [f"**{table['title']}**", "", "| setting | n objects | ADD(S) % | 2D projection % |",
+           "| --- | ---: | ---: | ---: |"]
+    for r in table["rows"]:
+        name = r["setting"] + (f" ({ORACLE})" if r["oracle_masks"] and ORACLE not in r["setting"] else "")
+        out.append(f"| {name} | {_f(r['n'], 'd')} | {_md_cell(r['add_s'], r['add_s_bold'])} | "
+                   f"{_md_cell(r['proj2d'], r['proj2d_bold'])} |")
+    if "gain" in table:
+        g = table["gain"]
+        out.append(f"| gain of the head | | {_signed(g['add_s'])} | {_signed(g['proj2d'])} |")
+    return "\n".join(out + [""] + table["notes"])
+
+
+def _signed(v: float | None) -> str:
+    return MISSING if v is None else f"{100 * v:+.2f}"
+
+
+def ablation_csv(table: Mapping) -> str:
+    rows = [["setting", "oracle_masks", "n_objects", "add_s", "proj2d"]]
+    rows += [[r["setting"], int(r["oracle_masks"]), r["n"], _num(r["add_s"]), _num(r["proj2d"])]
+             for r in table["rows"]]
+    if "gain" in table:
+        rows.append(["gain", "", "", _num(table["gain"]["add_s"]), _num(table["gain"]["proj2d"])])
+    return _csv(rows)
+
+
+# --------------------------------------------------------------------------------------------
+# agreement
+
+
+def _claim(cid: str, paper: str, ours: str, agrees: bool | None, detail: str = "") -> dict:
+    return {"id": cid, "claim": CLAIMS[cid], "paper": paper, "ours": ours, "agrees": agrees, "detail": detail}
+
+
+def _primary(entries: Sequence[Entry], method: str, split: str) -> Entry | None:
+    """The first result of ``method`` on ``split`` without oracle masks (then with them)."""
+    cands = [e for e in entries if e.method == method and e.split == split]
+    clean = [e for e in cands if not e.oracle_masks]
+    return (clean or cands or [None])[0]
+
+
+def _ranking(entries: Sequence[Entry], key: str, first: str, second: str, margin: float, cid: str) -> dict:
+    per = {}
+    for e in entries:
+        if e.split == "hard" and not e.oracle_masks and e.method not in per and e.value(key) is not None:
+            per[e.method] = e
+    mine = per.get(first)
+    others = {m: e for m, e in per.items() if m != first}
+    paper = f"{first} first, {second} second, +{100 * margin:.2f} %"
+    if mine is None or not others:
+        return _claim(cid, paper, "not measured (needs " + first + " and another method on hard)", None)
+    best_m, best_e = max(others.items(), key=lambda kv: kv[1].value(key))
+    diff = mine.value(key) - best_e.value(key)
+    order = sorted(per, key=lambda m: -per[m].value(key))
+    ok = diff > 0 and best_m == second and sum(1 for e in others.values() if e.value(key) == best_e.value(key)) == 1
+    ranking = order[0]
+    for a, b in zip(order, order[1:]):
+        ranking += (" = " if per[a].value(key) == per[b].value(key) else " > ") + b
+    ours = f"{ranking}; {first} {_pct(mine.value(key))} % vs {best_m} {_pct(best_e.value(key))} % " \
+           f"({_signed(diff)} %)"
+    return _claim(cid, paper, ours, ok, f"margin differs from the paper's by {100 * (diff - margin):+.2f} points")
+
+
+def agreement(entries: Sequence[Entry], profiles: Sequence[Mapping] = (),
+              fusion: Mapping[int, Entry] | None = None, seg_on: Entry | None = None,
+              seg_off: Entry | None = None) -> list[dict]:
+    """The paper's stated figures beside ours: one dict per claim of :data:`CLAIMS` — {"id",
+    "claim", "paper", "ours", "agrees" (True / False / None = not measured), "detail"}."""
+    tol = TOLERANCE
+    out = []
+    hff = _primary(entries, "hff6dof", "hard")
+    if hff is None or hff.value("add_s") is None:
+        out.append(_claim("hff6dof_hard_add_s", "50.50 %", "not measured", None))
+    else:
+        v = hff.value("add_s")
+        out.append(_claim("hff6dof_hard_add_s", "50.50 %", f"{_pct(v)} % ({hff.title})",
+                          abs(100 * (v - PAPER["hff6dof_hard_add_s"])) <= tol["accuracy_pp"],
+                          f"{100 * (v - PAPER['hff6dof_hard_add_s']):+.2f} points"))
+    out.append(_ranking(entries, "add_s", "hff6dof", "densefusion", PAPER["add_s_over_densefusion_hard"],
+                        "hff6dof_best_add_s_hard"))
+    out.append(_ranking(entries, "proj2d", "hff6dof", "ffb6d", PAPER["proj2d_over_ffb6d_hard"],
+                        "hff6dof_best_proj2d_hard"))
+    pairs = []
+    for m in dict.fromkeys(e.method for e in entries):
+        s, h = _primary(entries, m, "simple"), _primary(entries, m, "hard")
+        if s is not None and h is not None and s.value("add_s") is not None and h.value("add_s") is not None:
+            pairs.append((m, s.value("add_s"), h.value("add_s")))
+    out.append(_claim("simple_above_hard", "higher on simple for every method",
+                      "; ".join(f"{m} {_pct(a)} vs {_pct(b)}" for m, a, b in pairs) or "not measured",
+                      all(a > b for _, a, b in pairs) if pairs else None))
+
+    prof = {p.get("method"): p for p in profiles if not p.get("error")}
+    hp = prof.get("hff6dof")
+    if hp is None or hp.get("end_to_end_fps") is None:
+        out += [_claim("hff6dof_fps", "29.38 FPS (GTX 1080Ti)", "not measured", None),
+                _claim("hff6dof_parameters", "56.82 M", "not measured", None)]
+    else:
+        fps = float(hp["end_to_end_fps"])
+        out.append(_claim("hff6dof_fps", "29.38 FPS (GTX 1080Ti)",
+                          f"{fps:.2f} FPS end to end ({hp.get('network_fps')} network only) on {hp.get('device')}",
+                          fps >= (1 - tol["fps_rel"]) * PAPER["hff6dof_fps"]))
+        pm = float(hp["parameters_M"])
+        out.append(_claim("hff6dof_parameters", "56.82 M", f"{pm:.2f} M",
+                          abs(pm - PAPER["hff6dof_parameters_M"]) <= tol["parameters_rel"] * PAPER["hff6dof_parameters_M"]))
+    macs = {}
+    for m, paper_g in PAPER["macs_G"].items():
+        p = prof.get(m)
+        g = None if p is None else p.get("macs_480x640_G")
+        if g is None:
+            out.append(_claim(f"macs_{m}", f"{paper_g} G", "not measured", None))
+            continue
+        macs[m] = float(g)
+        out.append(_claim(f"macs_{m}", f"{paper_g} G", f"{float(g):.2f} G",
+                          abs(float(g) - paper_g) <= tol["macs_rel"] * paper_g, f"{100 * (float(g) / paper_g - 1):+.1f} %"))
+    order = ("hff6dof", "densefusion", "ffb6d")
+    if all(m in macs for m in order):
+        ours = " < ".join(sorted(order, key=lambda m: macs[m]))
+        out.append(_claim("macs_order", "hff6dof < densefusion < ffb6d", ours,
+                          macs["hff6dof"] < macs["densefusion"] < macs["ffb6d"]))
+    else:
+        out.append(_claim("macs_order", "hff6dof < densefusion < ffb6d", "not measured", None))
+
+    for key, cid in (("add_s", "seg_gain_add_s"), ("proj2d", "seg_gain_proj2d")):
+        paper = f"+{100 * PAPER[cid]:.2f} %"
+        a = None if seg_on is None else seg_on.value(key)
+        b = None if seg_off is None else seg_off.value(key)
+        if a is None or b is None:
+            out.append(_claim(cid, paper, "not measured", None))
+        else:
+            mark = f" (without the head: {ORACLE})" if seg_off.oracle_masks else ""
+            out.append(_claim(cid, paper, f"{_signed(a - b)} % ({_pct(a)} with, {_pct(b)} without{mark})", a - b > 0))
+    vals = {int(k): e.value("add_s") for k, e in (fusion or {}).items() if e.value("add_s") is not None}
+    if len(vals) < 2 or 3 not in vals:
+        out.append(_claim("best_fuse_stages", "3", "not measured (needs 3 and another number of fused stages)", None))
+    else:
+        top = max(vals.values())
+        best = [k for k in sorted(vals) if vals[k] == top]
+        shown = " = ".join(str(k) for k in best) + (" (tie)" if len(best) > 1 else "")
+        out.append(_claim("best_fuse_stages", "3", f"{shown} (" + ", ".join(f"{k}: {_pct(v)}" for k, v in
+                                                                    sorted(vals.items())) + ")", best == [3]))
+    return out
+
+
+def _yes(v: bool | None) -> str:
+    return "not measured" if v is None else ("yes" if v else "no")
+
+
+def agreement_markdown(claims: Sequence[Mapping]) -> str:
+    out = ["**Agreement with the paper's stated figures**", "", "| claim | paper | ours | agrees |",
+           "| --- | --- | --- | :---: |"]
+    for c in claims:
+        out.append(f"| {c['claim']} | {c['paper']} | {c['ours']} | {_yes(c['agrees'])} |")
+    n = [c["agrees"] for c in claims]
+    out += ["", f"{sum(1 for v in n if v is True)} of {sum(1 for v in n if v is not None)} claims measured agree "
+                f"({sum(1 for v in n if v is None)} not measured). Judged from what the data gives; nothing was "
+                "tuned on a test part."]
+    return "\n".join(out)
+
+
+def agreement_csv(claims: Sequence[Mapping]) -> str:
+    keys = ["id", "claim", "paper", "ours", "agrees", "detail"]
+    return _csv([keys] + [[c[k] if k != "agrees" else _yes(c[k]) for k in keys] for c in claims])
+
+
+# --------------------------------------------------------------------------------------------
+# curves and plots
+
+
+def curves_from_evaluation(ev, points: int = 101) -> dict:
+    """Accuracy-vs-threshold curves of a :class:`~tdof20.benchmark.scoring.Evaluation`, pooled over
+    its targets, to store in a score dict under "curves": {"add_s": {"x": % of the diameter 0-100,
+    "y": accuracy}, "proj2d": {"x": px 0-20, "y": ...}} (those computed)."""
+    from tdof20.benchmark.report import accuracy_curve
+    from tdof20.benchmark.scoring import PROJ_PLOT_MAX
+
+    objs = list(ev.objects.values())
+    out = {}
+    if "add_s" in ev.keys and objs:
+        x = np.linspace(0, 100, points)
+        e = np.concatenate([100 * o.add_s / o.diameter for o in objs])
+        out["add_s"] = {"x": x.round(4).tolist(), "y": accuracy_curve(e, x).round(6).tolist()}
+    if "proj2d" in ev.keys and objs:
+        x = np.linspace(0, PROJ_PLOT_MAX, points)
+        e = np.concatenate([o.proj for o in objs])
+        out["proj2d"] = {"x": x.round(4).tolist(), "y": accuracy_curve(e, x).round(6).tolist()}
+    return out
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name).strip("_") or "method"
+
+
+def plot_accuracy(entries: Sequence[Entry], path: str | Path,
+                  objects: Mapping[int, tuple[str, bool]] | None = None) -> Path:
+    """One method's accuracy plot (PNG, matplotlib Agg): ADD(S) accuracy against the threshold (% of
+    the diameter) and 2D projection against px, one line per protocol, where the score dicts hold
+    "curves"; otherwise bars per object (ADD(S) and 2D projection, one bar per protocol)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tdof20.formats.io import atomic_write_bytes
+
+    if not entries:
+        raise TdofError("nothing to plot")
+    title = entries[0].label
+    curves = all("curves" in e.scores and e.scores["curves"] for e in entries)
+    if curves:
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=100)
+        for ax, key, xl, mark in ((axes[0], "add_s", "threshold (% of the object diameter)", 10.0),
+                                  (axes[1], "proj2d", "threshold (px)", 5.0)):
+            for e in entries:
+                c = e.scores["curves"].get(key)
+                if c:
+                    ax.plot(c["x"], 100 * np.asarray(c["y"]), lw=1.6,
+                            label=e.split + (f" ({ORACLE})" if e.oracle_masks else ""))
+            ax.axvline(mark, color="0.5", ls="--", lw=1)
+            ax.set_ylim(0, 100)
+            ax.set_xlabel(xl)
+            ax.set_ylabel("accuracy (%)")
+            ax.set_title(f"{title}: {KEY_TITLES[key]}")
+            ax.grid(alpha=0.3)
+            ax.legend(loc="lower right", fontsize=8)
+    else:
+        ids = _object_ids(entries)
+        objs = dict(catalog_objects(ids))
+        objs.update({int(k): v for k, v in (objects or {}).items()})
+        fig, axes = plt.subplots(2, 1, figsize=(max(6.0, 0.45 * len(ids) + 2), 6.4), dpi=100, squeeze=False)
+        w = 0.8 / max(1, len(entries))
+        x = np.arange(len(ids))
+        for ax, key in zip(axes[:, 0], ("add_s", "proj2d")):
+            for k, e in enumerate(entries):
+                v = [e.value(key, o) for o in ids]
+                ax.bar(x + (k - (len(entries) - 1) / 2) * w, [100 * (a or 0.0) for a in v], w,
+                       label=e.split + (f" ({ORACLE})" if e.oracle_masks else ""))
+            ax.set_xticks(x, [objs.get(o, (str(o), False))[0] + (" *" if objs.get(o, ("", False))[1] else "")
+                              for o in ids], rotation=60, ha="right", fontsize=7)
+            ax.set_ylim(0, 100)
+            ax.set_ylabel(f"{KEY_TITLES[key]} (%)")
+            ax.grid(alpha=0.3, axis="y")
+            ax.legend(fontsize=8)
+        axes[0, 0].set_title(f"{title}: accuracy per object (* asymmetric)")
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# everything
+
+
+def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequence[Mapping] = (),
+                 fusion: Mapping[int, Entry] | None = None, seg_on: Entry | None = None,
+                 seg_off: Entry | None = None, objects: Mapping[int, tuple[str, bool]] | None = None,
+                 header: Sequence[str] = (), plots: bool = True) -> dict[str, Path]:
+    """Render every table into ``out_dir``: tables.md, tables.json, table1_add_s.csv,
+    table2_proj2d.csv, table3_efficiency.csv, ablation_fusion.csv, ablation_segmentation.csv,
+    agreement.csv and plots/accuracy_<label>.png per method (atomic writes). Tables without any
+    input are left out (a note says so). Returns {name: path}."""
+    from tdof20.formats.io import atomic_write_bytes, write_json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    md = [*header] + ([""] if header else [])
+    data: dict[str, Any] = {}
+
+    def put(name: str, text: str) -> None:
+        atomic_write_bytes(out / name, text.encode())
+        paths[name] = out / name
+
+    if entries:
+        for key, name in (("add_s", "table1_add_s.csv"), ("proj2d", "table2_proj2d.csv")):
+            t = protocol_table(entries, key, objects)
+            data[f"table{1 if key == 'add_s' else 2}"] = t
+            md += [protocol_markdown(t), ""]
+            put(name, protocol_csv(t))
+    else:
+        md += ["Tables 1 and 2: no scored results.", ""]
+    if profiles:
+        t3 = efficiency_table(profiles)
+        data["table3"] = t3
+        md += [efficiency_markdown(t3), ""]
+        put("table3_efficiency.csv", efficiency_csv(t3))
+    else:
+        md += ["Table 3: not profiled.", ""]
+    if fusion:
+        ft = fusion_table(fusion)
+        data["ablation_fusion"] = ft
+        md += [ablation_markdown(ft), ""]
+        put("ablation_fusion.csv", ablation_csv(ft))
+    else:
+        md += ["Fusion ablation: not run.", ""]
+    if seg_on is not None or seg_off is not None:
+        st = segmentation_table(seg_on, seg_off)
+        data["ablation_segmentation"] = st
+        md += [ablation_markdown(st), ""]
+        put("ablation_segmentation.csv", ablation_csv(st))
+    else:
+        md += ["Segmentation ablation: not run.", ""]
+    claims = agreement(entries, profiles, fusion, seg_on, seg_off)
+    data["agreement"] = claims
+    md += [agreement_markdown(claims), ""]
+    put("agreement.csv", agreement_csv(claims))
+    if plots and entries:
+        md += ["**Accuracy plots**", ""]
+        for label in dict.fromkeys(e.label for e in entries):
+            group = [e for e in entries if e.label == label]
+            p = plot_accuracy(group, out / "plots" / f"accuracy_{_safe(label)}.png", objects)
+            paths[f"plots/{p.name}"] = p
+            md.append(f"![{label}](plots/{p.name})")
+        md.append("")
+    put("tables.md", "\n".join(md))
+    write_json(out / "tables.json", data)
+    paths["tables.json"] = out / "tables.json"
+    return paths
+
+
+__all__ = ["CLAIMS", "Entry", "MISSING", "ORACLE", "PAPER", "TOLERANCE", "ablation_csv", "ablation_markdown",
+           "agreement", "agreement_csv", "agreement_markdown", "catalog_objects", "columns", "curves_from_evaluation",
+           "efficiency_csv", "efficiency_markdown", "efficiency_table", "fusion_table", "models_info_objects",
+           "plot_accuracy", "protocol_csv", "protocol_markdown", "protocol_table", "segmentation_table",
+           "write_tables"]
