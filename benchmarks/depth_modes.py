@@ -28,7 +28,7 @@ from tdof20.benchmark.scoring import score
 from tdof20.capture import run_capture, sim_config
 from tdof20.methods.data import DEPTH_MODES, HFFTransform, SceneImages, keypoint_table, keypoints_from_json
 from tdof20.methods.predict import VOTING, predict_rows, recover_poses, segmentation_iou
-from tdof20.methods.train import load_run, train
+from tdof20.methods.train import load_run, run_classes, train
 from tdof20.sim.truth import oracle_scene
 
 
@@ -52,17 +52,18 @@ def oracle_vector_rows(run: Path, root: Path, split: str, voting: str) -> list[t
     """Poses from the ground-truth vector field and masks with the run's input depth: the error
     that the depth alone causes."""
     net, cfg = load_run(run, "cpu")
-    kt = keypoint_table(keypoints_from_json(cfg["keypoints"]))
+    classes = run_classes(cfg)  # class c -> object classes[c - 1]
+    kt = keypoint_table(keypoints_from_json(cfg["keypoints"]), classes=classes)
     images = split_images(root, split, "test")
     data = SceneImages(root, images, labels=True)
-    tf_in = HFFTransform(kt, cfg["image_size"], cfg["depth_mode"], targets=True)
+    tf_in = HFFTransform(kt, cfg["image_size"], cfg["depth_mode"], targets=True, classes=classes)
     gen = torch.Generator().manual_seed(0)
     rows = []
     for i in range(len(data)):
         s = tf_in(data[i])
         res = recover_poses(s["label"][None], s["vec"][None], s["depth"][None], s["K"][None], kt, 5,
                             generator=gen, voting=voting)[0]
-        rows += [(s["scene_id"], s["im_id"], r["obj_id"], r["score"], r["R"], r["t"], -1) for r in res]
+        rows += [(s["scene_id"], s["im_id"], classes[r["obj_id"] - 1], r["score"], r["R"], r["t"], -1) for r in res]
     return rows
 
 

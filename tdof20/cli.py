@@ -32,8 +32,8 @@ class _AnnotateGroup(typer.core.TyperGroup):
 
 annotate_app = typer.Typer(cls=_AnnotateGroup, no_args_is_help=True,
                            help="Annotate a raw session: RAW_DIR --out SCENE_DIR (register, reconstruct, model, "
-                                "place, label, qa); evaluate labels against the simulator's truth.")
-train_app = typer.Typer(no_args_is_help=True, help="Train a method on a dataset split (checkpoints, resume, loss curves).")
+                                "place, label, qa), or several: RAW_DIR... --out DIR (DIR/multi/08 ...); evaluate "
+                                "labels against the simulator's truth.")
 benchmark_app = typer.Typer(no_args_is_help=True, help="Score results (ADD, ADD-S, 2D projection) and profile methods.")
 app.add_typer(annotate_app, name="annotate")
 app.add_typer(benchmark_app, name="benchmark")
@@ -41,11 +41,11 @@ app.add_typer(capture_app, name="capture")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(objects_app, name="objects")
 app.add_typer(sim_app, name="sim")
-app.add_typer(train_app, name="train")
 
 out_console = console.__class__()  # stdout, for tables
 
-SCENE = typer.Option("multi/08", help="scene name: single/01..20 or multi/01..20")
+SCENE = typer.Option("multi/08", help="scene name: single/<class> (e.g. single/cube_136; single/01..20 = object "
+                                     "id is an alias) or multi/00..19")
 WIDTH = typer.Option(640, help="image width in pixels")
 HEIGHT = typer.Option(480, help="image height in pixels")
 SEED = typer.Option(0, help="noise seed (frames are deterministic for a seed)")
@@ -201,18 +201,20 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
 # ----------------------------------------------------------------------------------- objects
 @objects_app.command("list")
 def objects_list() -> None:
-    """Print the catalog: id, name, kind, size, diameter, symmetry."""
+    """Print the catalog (TDoF20's 20 classes): id, name, kind, size, capacity, diameter, symmetry."""
     from tdof20.objects import all_objects
 
-    t = Table(title="tdof20 object catalog (mm)")
-    for c in ("id", "name", "kind", "size x*y*z", "diameter", "symmetry", "faces"):
-        t.add_column(c, justify="right" if c in ("id", "diameter", "faces") else "left")
+    t = Table(title="tdof20 object catalog: TDoF20's classes (mm; the number in a name is its capacity in ml)")
+    for c in ("id", "name", "kind", "size x*y*z", "capacity ml", "diameter", "symmetry", "faces"):
+        t.add_column(c, justify="right" if c in ("id", "capacity ml", "diameter", "faces") else "left",
+                     no_wrap=c == "name")
     for o in all_objects():
         info = o.models_info()
         sym = ("continuous z" if o.symmetries_continuous else
                f"discrete {len(o.symmetries_discrete) + 1}-fold" if o.symmetries_discrete else "[bold]none[/bold]")
         t.add_row(str(o.obj_id), o.name, o.kind,
-                  f"{info['size_x']:.0f}*{info['size_y']:.0f}*{info['size_z']:.0f}", f"{o.diameter:.1f}", sym,
+                  f"{info['size_x']:.0f}*{info['size_y']:.0f}*{info['size_z']:.0f}", f"{o.capacity_ml:.0f}",
+                  f"{o.diameter:.1f}", sym,
                   str(len(o.faces)))
     out_console.print(t)
 
@@ -241,16 +243,20 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
 # ----------------------------------------------------------------------------------- sim
 @sim_app.command("scenes")
 def sim_scenes() -> None:
-    """List the 40 TDoF20 scenes of the simulator with their objects and stickers."""
-    from tdof20.objects import get_object
+    """List the 40 TDoF20 scenes of the simulator (single/<class>, multi/00..19) with their numeric (BOP)
+    scene ids, objects and stickers; TDoF20-hard tests on multi/02, 08, 09, 10, 11, 15."""
+    from tdof20.benchmark.splits import HARD_TEST_MULTI
+    from tdof20.objects import object_names
     from tdof20.sim.scenes import get_scene, scene_ids
 
+    names = object_names()
     t = Table(title="simulated TDoF20 scenes")
-    for c in ("scene", "objects", "sticker"):
-        t.add_column(c)
+    for c in ("scene", "id", "objects", "sticker", "hard"):
+        t.add_column(c, justify="right" if c == "id" else "left")
     for sid in scene_ids():
         s = get_scene(sid)
-        t.add_row(sid, ", ".join(f"{i} {get_object(i).name}" for i in s.obj_ids), s.sticker)
+        hard = "test" if s.kind == "multi" and s.number in HARD_TEST_MULTI else "train"
+        t.add_row(sid, str(s.numeric_id), ", ".join(f"{i} {names[i]}" for i in s.obj_ids), s.sticker, hard)
     out_console.print(t)
 
 
@@ -305,11 +311,27 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
                   out: Path = typer.Option(..., "--out", help="dataset root (created; an existing one only with "
                                            "the same scenes, or with --add)"),
                   add: bool = typer.Option(False, "--add", help="add the scenes to the dataset in --out (models, "
-                                           "splits and targets are updated)")) -> None:
+                                           "splits and targets are updated)"),
+                  layout: str = typer.Option("tdof20", "--layout", help="tdof20 (both protocols, splits/) or bop (the "
+                                             "standard BOP layout: train/ and test/ of one protocol)"),
+                  split: Optional[str] = typer.Option(None, "--split", help="with --layout bop: the protocol (simple "
+                                                      "or hard) whose train and test parts become train/ and test/")) -> None:
     """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
-    from tdof20.benchmark.dataset import build_dataset
+    from tdof20.benchmark.dataset import build_bop_dataset, build_dataset
 
-    s = build_dataset(scenes, out, add=add)
+    if layout not in ("tdof20", "bop"):
+        raise TdofError(f"--layout must be tdof20 or bop, got '{layout}'")
+    if layout == "bop":
+        if split is None:
+            raise TdofError("--layout bop needs --split simple or --split hard (the protocol whose train and test "
+                            "parts become train/ and test/)")
+        if add:
+            raise TdofError("--add grows a tdof20-layout dataset; build a BOP layout from the full scene list")
+        s = build_bop_dataset(scenes, out, split)
+    elif split is not None:
+        raise TdofError("--split is for --layout bop (a tdof20-layout dataset holds both protocols)")
+    else:
+        s = build_dataset(scenes, out, add=add)
     _print_stats(s)
     console.print(f"dataset in {out}")
 
@@ -331,27 +353,78 @@ def dataset_stats(root: Path = typer.Argument(..., help="dataset root"),
 
 @dataset_app.command("pack")
 def dataset_pack(root: Path = typer.Argument(..., help="dataset root"),
-                 split: str = typer.Option(..., help="simple or hard"),
+                 split: str = typer.Option(..., help="simple or hard (a BOP dataset: a split folder, e.g. train_pbr)"),
                  part: str = typer.Option(..., help="train or test"),
-                 out: Path = typer.Option(..., "--out", help="HDF5 file to write")) -> None:
+                 out: Path = typer.Option(..., "--out", help="HDF5 file to write"),
+                 cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
+                                                          "lacks is rendered to (default ROOT/.cache)")) -> None:
     """Write what training reads (colour, depths, masks, poses, camera) into one HDF5 file."""
     from tdof20.benchmark.dataset import pack
 
-    pack(root, split, part, out)
+    pack(root, split, part, out, cache_dir=cache_dir)
     console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)")
+
+
+@dataset_app.command("import-tdof20")
+def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDoF20 folder (dataset_config/, models/, "
+                                                     "single_data/, multi_data/, ...)"),
+                          out: Optional[Path] = typer.Option(None, "--out", help="dataset root to write (created; a "
+                                                             "rerun of the same import resumes it)"),
+                          check: bool = typer.Option(False, "--check", help="read and check everything, print what "
+                                                     "was found, write nothing"),
+                          scenes: Optional[str] = typer.Option(None, "--scenes", help="only these scenes, comma-"
+                                                               "separated: single/<class>, multi/NN")) -> None:
+    """Import the released TDoF20 (its documented layout) as a tdof20 dataset: released splits, depth
+    modes raw/stabilized/restored, masks, models in mm, the released keypoints (docs/tdof20_release.md)."""
+    from tdof20.benchmark.importer import import_tdof20
+
+    if out is None and not check:
+        raise TdofError("give --out ROOT to import, or --check to only read and check the release")
+    names = [x.strip() for x in scenes.split(",") if x.strip()] if scenes else None
+    s = import_tdof20(src, out, check=check, scenes=names)
+    t = Table(title=f"TDoF20 release {src}: {len(s['classes'])} classes, {len(s['scenes'])} scenes")
+    for c in ("scene", "id", "frames", "mask IoU (first frame)"):
+        t.add_column(c, justify="right")
+    for name, n in s["scenes"].items():
+        t.add_row(name, str(s["scene_ids"][name]), str(n), f"{s['mask_iou_first_frame'][name]:.2f}")
+    out_console.print(t)
+    t = Table(title="lists")
+    for c in ("list", "file", "frames", "form"):
+        t.add_column(c)
+    for k, n in s["lists"].items():
+        t.add_row(k, s["list_files"][k], str(n), "; ".join(s["list_forms"][k]))
+    out_console.print(t)
+    lines = [f"classes: {', '.join(s['classes'])}", f"intrinsics: {s['intrinsics']}",
+             f"image size: {s['image_size'][0]}x{s['image_size'][1]}", f"poses: {s['units']['poses']}",
+             f"depth: {s['units']['depth']}", *(f"model {k}: {v}" for k, v in s["units"]["models"].items()),
+             *(f"im_id: {r}" for r in s["im_id_rule"]), *(f"symmetry: {x}" for x in s["symmetries"]),
+             *(f"note: {x}" for x in s["notes"])]
+    for ln in lines:
+        out_console.print(ln, highlight=False)
+    if s["written"]:
+        console.print(f"{'resumed and finished' if s.get('resumed') else 'imported'} into {s['out']}")
+    else:
+        console.print("checked: nothing written")
 
 
 def _print_stats(s: dict) -> None:
     from tdof20.benchmark.splits import PAPER_HARD, PAPER_SIMPLE
-    from tdof20.objects import get_object
 
-    t = Table(title=f"{s['scenes']} scenes, {s['images']} images")
-    for c in ("split", "train", "test", "test targets", "paper train : test"):
-        t.add_column(c, justify="right")
+    t = Table(title=f"{s.get('layout', 'tdof20')} layout: {s['scenes']} scenes, {s['images']} images")
     sp = s["splits"]
-    for name, paper in (("simple", PAPER_SIMPLE), ("hard", PAPER_HARD)):
-        t.add_row(name, str(sp[f"{name}_train"]), str(sp[f"{name}_test"]), str(sp[f"{name}_targets"]),
-                  f"{paper[0]} : {paper[1]}")
+    if "split_folders" in s:
+        for c in ("split folder", "scenes", "images", "test images", "test targets"):
+            t.add_column(c, justify="right")
+        for name, f in s["split_folders"].items():
+            t.add_row(name, str(f["scenes"]), str(f["images"]), str(f["test_images"]), str(f["targets"]))
+    else:
+        for c in ("split", "train", "test", "test targets", "paper train : test"):
+            t.add_column(c, justify="right")
+        papers = {"simple": PAPER_SIMPLE, "hard": PAPER_HARD}
+        for name in dict.fromkeys(k.rsplit("_", 1)[0] for k in sp):
+            paper = papers.get(name)
+            t.add_row(name, str(sp.get(f"{name}_train", 0)), str(sp.get(f"{name}_test", 0)),
+                      str(sp.get(f"{name}_targets", 0)), f"{paper[0]} : {paper[1]}" if paper else "")
     out_console.print(t)
     t = Table(title="images per scene")
     t.add_column("scene")
@@ -362,15 +435,17 @@ def _print_stats(s: dict) -> None:
     t = Table(title="images per object")
     for c in ("id", "name", "images"):
         t.add_column(c)
+    names = s.get("objects", {})
     for oid, n in s["per_object"].items():
-        t.add_row(str(oid), get_object(int(oid)).name, str(n))
+        t.add_row(str(oid), names.get(oid, names.get(str(oid), f"obj_{int(oid):06d}")), str(n))
     out_console.print(t)
 
 
 # ----------------------------------------------------------------------------------- annotate
 @annotate_app.command("run", hidden=True)
-def annotate_run(raw: Path = typer.Argument(..., help="raw session folder (tdof20 capture)"),
-                 out: Path = typer.Option(..., "--out", help="the annotated scene folder (created; a rerun resumes)"),
+def annotate_run(raw: list[Path] = typer.Argument(..., help="raw session folder(s) (tdof20 capture)"),
+                 out: Path = typer.Option(..., "--out", help="the annotated scene folder (created; a rerun resumes); "
+                                          "with several sessions the folder of their scenes, DIR/multi/08 ..."),
                  models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder in mm (CAD models, or "
                                                        "the models the single-object scenes got)"),
                  stages: Optional[str] = typer.Option(None, "--stages", help="e.g. register..model or label,qa "
@@ -378,15 +453,28 @@ def annotate_run(raw: Path = typer.Argument(..., help="raw session folder (tdof2
                  config: Optional[Path] = typer.Option(None, "--config", help="TOML options (docs/annotate.md)"),
                  executor: Optional[str] = typer.Option(None, "--executor", help="local (worker processes) or ray"),
                  ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster, e.g. 10.0.0.5:6379"),
-                 workers: Optional[int] = typer.Option(None, "--workers", help="worker processes for registration (one arm each) and labels (default: cores)"),
+                 workers: Optional[int] = typer.Option(None, "--workers", help="worker processes (or a local Ray "
+                                                       "instance's CPUs) shared by the scenes, their registration (one "
+                                                       "arm each) and labels (default: cores)"),
                  force: bool = typer.Option(False, "--force", help="rerun the chosen stages even when up to date")) -> None:
-    """Annotate RAW into a labelled BOP scene in --out: poses, masks, restored depth, QA report."""
+    """Annotate RAW into a labelled BOP scene in --out: poses, masks, restored depth, QA report.
+    Several RAWs: one scene folder each, DIR/<scene id> (multi/08 -> DIR/multi/08), side by side."""
     from tdof20.annotate.pipeline import AnnotateConfig, annotate, load_annotate_config, summary_text
 
     cfg = load_annotate_config(config) if config is not None else AnnotateConfig()
     cfg = cfg.with_label_options(executor=executor, ray_address=ray_address, workers=workers)
-    summary = annotate(raw, out, models_dir=models, stages=stages, cfg=cfg, force=force)
-    out_console.print(summary_text(summary), highlight=False)
+    if len(raw) == 1:
+        summary = annotate(raw[0], out, models_dir=models, stages=stages, cfg=cfg, force=force)
+        out_console.print(summary_text(summary), highlight=False)
+        return
+    from tdof20.annotate.batch import SUMMARY, annotate_many, batch_text
+
+    batch = annotate_many(raw, out, models_dir=models, stages=stages, cfg=cfg, force=force)
+    out_console.print(batch_text(batch), highlight=False, soft_wrap=True)
+    if batch["failed"]:
+        raise TdofError(f"{len(batch['failed'])} of {len(batch['scenes'])} scenes failed: {', '.join(batch['failed'])} "
+                        f"({'the others finished; ' if len(batch['failed']) < len(batch['scenes']) else ''}"
+                        f"errors above and in {out / SUMMARY}; a rerun resumes each scene)")
 
 
 @annotate_app.command("evaluate")
@@ -412,34 +500,71 @@ def _image_size(text: Optional[str]) -> Optional[tuple[int, int]]:
     return h, w
 
 
-@train_app.command("hff6dof")
-def train_hff6dof(dataset: Path = typer.Option(..., "--dataset", help="dataset root (tdof20 dataset build)"),
-                  split: str = typer.Option(..., "--split", help="simple or hard"),
-                  out: Path = typer.Option(..., "--out", help="run folder (created; an existing run resumes)"),
-                  image_size: str = typer.Option("240x320", help="HxW the images are resized to, or 'native'"),
-                  batch_size: int = typer.Option(8, help="images per optimiser step (per process)"),
-                  epochs: int = typer.Option(20, help="passes over the training images, in all"),
-                  lr: float = typer.Option(1e-3, help="peak learning rate (AdamW)"),
-                  lr_schedule: str = typer.Option("cosine", help="cosine or step"),
-                  depth_mode: str = typer.Option("filled", help="input depth: raw, filled or restored (privileged)"),
-                  fuse_stages: int = typer.Option(3, help="encoder stages fused (1-5; the paper's ablation)"),
-                  seg_head: bool = typer.Option(True, "--seg-head/--no-seg-head", help="the segmentation head"),
-                  device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
-                  amp: Optional[bool] = typer.Option(None, "--amp/--no-amp", help="mixed precision (default: on CUDA)"),
-                  workers: int = typer.Option(2, help="data-loading worker processes"),
-                  max_steps: Optional[int] = typer.Option(None, help="stop after this many optimiser steps in all"),
-                  seed: int = SEED,
-                  backbone_weights: Optional[Path] = typer.Option(None, help="torchvision resnet34 state dict (.pth) for both encoders"),
-                  shard: Optional[Path] = typer.Option(None, help="train on this HDF5 shard (tdof20 dataset pack)"),
-                  save_every: float = typer.Option(600.0, help="checkpoint at an epoch end when the last is older (s)")) -> None:
-    """Train HFF6DoF on the train part of a split; run again on the same --out to resume or extend."""
-    from tdof20.methods.train import is_main_process, train
+def _method_help(short: bool = False) -> str:
+    """The registered methods (the registry imports no torch: --help stays fast)."""
+    from tdof20.methods.registry import get_method, method_names
+
+    if short:
+        return ", ".join(method_names())
+    return "; ".join(f"{n}: {get_method(n).description}" for n in method_names())
+
+
+@app.command("train", help="Train a method on the train part of a split (checkpoints, resume, loss curves); run "
+                           "again on the same --out to resume or extend. METHOD is one of: " + _method_help(),
+             short_help=f"Train a method ({_method_help(short=True)}) on a split: checkpoints, resume, loss curves.")
+def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_help(short=True)),
+              dataset: Path = typer.Option(..., "--dataset", help="dataset root (tdof20 dataset build)"),
+              split: str = typer.Option(..., "--split", help="simple or hard (a BOP dataset: a split folder, "
+                                        "e.g. train_pbr)"),
+              out: Path = typer.Option(..., "--out", help="run folder (created; an existing run resumes)"),
+              config: Optional[Path] = typer.Option(None, "--config", help="TOML with \\[train] (the options below) "
+                                                    "and \\[method] (the method's options) tables; options given "
+                                                    "on the command line win"),
+              image_size: Optional[str] = typer.Option(None, help="HxW the images are resized to, or 'native' "
+                                                       "(default: the method's, 240x320)"),
+              batch_size: Optional[int] = typer.Option(None, help="images per optimiser step (per process) [8]"),
+              epochs: Optional[int] = typer.Option(None, help="passes over the training images, in all [20]"),
+              lr: Optional[float] = typer.Option(None, help="peak learning rate (AdamW) [1e-3]"),
+              lr_schedule: Optional[str] = typer.Option(None, help="cosine or step [cosine]"),
+              depth_mode: Optional[str] = typer.Option(None, help="input depth of an RGB-D method: raw, filled or "
+                                                       "restored (privileged) [filled]"),
+              fuse_stages: Optional[int] = typer.Option(None, help="hff6dof: encoder stages fused (1-5) [3]"),
+              seg_head: Optional[bool] = typer.Option(None, "--seg-head/--no-seg-head",
+                                                      help="hff6dof: the segmentation head [on]"),
+              device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
+              amp: Optional[bool] = typer.Option(None, "--amp/--no-amp", help="mixed precision (default: on CUDA)"),
+              workers: Optional[int] = typer.Option(None, help="data-loading worker processes [2]"),
+              max_steps: Optional[int] = typer.Option(None, help="stop after this many optimiser steps in all"),
+              seed: Optional[int] = typer.Option(None, help="seed of the initial weights and the sampling [0]"),
+              backbone_weights: Optional[Path] = typer.Option(None, help="torchvision ResNet state dict (.pth) for "
+                                                              "the method's encoder(s)"),
+              shard: Optional[Path] = typer.Option(None, help="train on this HDF5 shard (tdof20 dataset pack)"),
+              save_every: Optional[float] = typer.Option(None, help="checkpoint at an epoch end when the last is "
+                                                         "older (s) [600]"),
+              cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
+                                                       "lacks is rendered to (default ROOT/.cache)")) -> None:
+    from tdof20.methods.registry import get_method
+    from tdof20.methods.train import TrainOptions, is_main_process, load_train_config, train
 
     try:
-        train(dataset, split, out, image_size=_image_size(image_size), batch_size=batch_size, epochs=epochs, lr=lr,
-              lr_schedule=lr_schedule, depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head,
-              device=device, amp=amp, num_workers=workers, max_steps=max_steps, seed=seed,
-              backbone_weights=backbone_weights, shard=shard, save_every_s=save_every)
+        m = get_method(method)
+        opts, mcfg = load_train_config(config, m) if config is not None else (TrainOptions(), None)
+        size = opts.image_size
+        size = "method" if not size else (None if tuple(size) == (0, 0) else tuple(size))
+        if image_size is not None:
+            size = _image_size(image_size)
+
+        def pick(given, default):
+            return default if given is None else given
+
+        train(dataset, split, out, method=m.name, method_config=mcfg, image_size=size,
+              batch_size=pick(batch_size, opts.batch_size), epochs=pick(epochs, opts.epochs), lr=pick(lr, opts.lr),
+              lr_schedule=pick(lr_schedule, opts.lr_schedule), weight_decay=opts.weight_decay,
+              depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head, device=device, amp=amp,
+              num_workers=pick(workers, opts.num_workers),
+              max_steps=pick(max_steps, opts.max_steps if opts.max_steps > 0 else None),
+              seed=pick(seed, opts.seed), backbone_weights=backbone_weights, shard=shard,
+              save_every_s=pick(save_every, opts.save_every_s), cache_dir=cache_dir)
     except TdofError as e:
         if getattr(e, "same_in_every_process", False) and not is_main_process():
             sys.exit(2)  # under torchrun: process 0 prints the line
@@ -447,17 +572,20 @@ def train_hff6dof(dataset: Path = typer.Option(..., "--dataset", help="dataset r
 
 
 @app.command("predict")
-def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train hff6dof)"),
+def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train METHOD --out); the run knows its method"),
                 dataset: Path = typer.Option(..., "--dataset", help="dataset root"),
-                split: str = typer.Option(..., "--split", help="simple or hard"),
+                split: str = typer.Option(..., "--split", help="simple or hard (a BOP dataset: a split folder, e.g. test)"),
                 out: Path = typer.Option(..., "--out", help="results CSV to write (BOP format)"),
                 device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
                 batch_size: int = typer.Option(1, help="images per forward pass"),
                 workers: int = typer.Option(2, help="data-loading worker processes"),
-                masks: str = typer.Option("auto", help="auto, network or gt (oracle masks; not a valid submission)"),
-                voting: str = typer.Option("bearing", help="bearing (every pixel) or 3d (pixels with depth)"),
+                masks: Optional[str] = typer.Option(None, help="hff6dof: auto, network or gt (oracle masks; not a "
+                                                    "valid submission) [the run's: auto]"),
+                voting: Optional[str] = typer.Option(None, help="hff6dof: bearing (every pixel) or 3d (pixels with "
+                                                     "depth) [the run's: bearing]"),
                 seed: int = SEED) -> None:
-    """Estimate the poses of a split's test images; writes the results CSV with per-image times."""
+    """Estimate the poses of a split's test images with a run of any method; writes the results CSV with
+    per-image times and, beside it, <stem>_info.json (method, its config, depth mode, timings)."""
     from tdof20.methods.predict import predict
 
     predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, masks=masks,
@@ -468,7 +596,8 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train h
 @benchmark_app.command("score")
 def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV files (scene_id,im_id,obj_id,score,R,t,time)"),
                     dataset: Path = typer.Option(..., "--dataset", help="dataset root"),
-                    split: Optional[str] = typer.Option(None, "--split", help="simple or hard (its test targets)"),
+                    split: Optional[str] = typer.Option(None, "--split", help="simple or hard (its test targets; a BOP "
+                                                        "dataset: test, for test_targets_bop19.json)"),
                     targets: Optional[Path] = typer.Option(None, "--targets", help="a targets JSON instead of --split"),
                     json_out: Optional[Path] = typer.Option(None, "--json", help="write the scores as JSON here"),
                     plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md"),
@@ -482,28 +611,34 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
 
 
 @benchmark_app.command("profile")
-def benchmark_profile(method: str = typer.Argument(..., help="the method: hff6dof"),
+def benchmark_profile(method: str = typer.Argument(..., help="a registered method (hff6dof, pvnet, densefusion, "
+                                                   "ffb6d) or all"),
                       json_out: bool = typer.Option(False, "--json", help="print JSON"),
                       device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
                       height: int = typer.Option(480, help="input height"),
                       width: int = typer.Option(640, help="input width"),
-                      runs: int = typer.Option(5, help="timed runs (median)"),
+                      repeats: int = typer.Option(5, "--repeats", "--runs", help="timed runs (median)"),
                       batch_size: int = typer.Option(1, help="images per forward pass")) -> None:
-    """Parameters, multiply-adds at 480x640, latency and FPS (network and pose recovery) on this device."""
+    """Table 3: parameters, multiply-adds at 480x640, latency and FPS (network and pose recovery apart) on
+    this device, beside the paper's figures and the originals' parameter counts (untrained networks)."""
     import json
 
-    from tdof20.methods.profile import format_profile, profile
+    from tdof20.methods.profile import format_profile, format_table, profile
+    from tdof20.methods.registry import get_method
 
-    if method != "hff6dof":
-        raise TdofError(f"unknown method '{method}' (profiled methods: hff6dof)")
-    p = profile(device=device, height=height, width=width, runs=runs, batch_size=batch_size)
-    print(json.dumps(p, indent=2) if json_out else format_profile(p))
+    if method.strip().lower() != "all":
+        get_method(method)  # an unknown method: one line listing the known ones, before any work
+    p = profile(method, device=device, height=height, width=width, repeats=repeats, batch_size=batch_size)
+    if json_out:
+        print(json.dumps(p, indent=2))
+    else:
+        print(format_table(p) if isinstance(p, list) else format_profile(p))
 
 
 # ----------------------------------------------------------------------------------- demo
 @app.command("demo")
 def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything the demo writes (a rerun resumes)"),
-         scenes: str = typer.Option("single/12,multi/08", help="comma-separated scene names; training and "
+         scenes: str = typer.Option("single/juice_cup_340,multi/08", help="comma-separated scene names; training and "
                                     "scoring use the single-object ones (TDoF20-simple)"),
          steps: int = typer.Option(16, help="turntable steps per arm position (annotate needs about 12 or more)"),
          step_deg: float = typer.Option(5.0, help="turntable step in degrees (at most 30 for the registration)"),
@@ -532,6 +667,23 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
     run_demo(out, scenes=names, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,
              height=height, seed=seed, train=train, image_size=size, epochs=epochs, batch_size=batch_size,
              device=device)
+
+
+# ----------------------------------------------------------------------------------- reproduce
+@app.command("reproduce")
+def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everything (a rerun resumes)"),
+                  preset: Optional[str] = typer.Option(None, "--preset", help="smoke, cpu, gpu or full "
+                                                       "\\[the TOML's, else smoke]"),
+                  config: Optional[Path] = typer.Option(None, "--config", help="TOML over the preset (methods, "
+                                                        "\\[data], \\[train], \\[epochs], \\[ablations], \\[profile])"),
+                  dataset: Optional[Path] = typer.Option(None, "--dataset", help="a dataset root to use instead of "
+                                                         "simulating one (e.g. an imported TDoF20)")) -> None:
+    """The paper's Tables 1-3 and both ablations with one command: dataset, train every method on
+    both protocols, predict, score, profile, OUT/tables/tables.md (+ CSV, JSON, plots); resumable.
+    See docs/reproduce.md."""
+    from tdof20.benchmark.reproduce import reproduce
+
+    reproduce(out, preset=preset, config=config, dataset=dataset)
 
 
 def main() -> None:

@@ -280,3 +280,31 @@ def test_interrupted_import_resumes(tmp_path, monkeypatch):
             assert json.loads((out / p).read_text()) == json.loads((ref / p).read_text()), p
         elif p.suffix in (".png", ".jpg", ".ply"):
             assert (out / p).read_bytes() == (ref / p).read_bytes(), p
+
+
+def test_imported_release_round_trip_stats_train_predict_score(tmp_path):
+    """import -> stats equal the lists -> a few training steps -> predict -> score, on the fixture."""
+    import csv
+
+    from tdof20.benchmark.dataset import stats
+    from tdof20.benchmark.scoring import score
+    from tdof20.methods.predict import predict
+    from tdof20.methods.train import train
+
+    w = write_tdof20_release(tmp_path / "TDoF20", **SMALL)
+    out = tmp_path / "ds"
+    import_tdof20(tmp_path / "TDoF20", out, show_progress=False)
+    s = stats(out)
+    lists = {k: len((tmp_path / "TDoF20" / "dataset_config" / f).read_text().split()) for k, f in LIST_KEYS.items()}
+    assert {k: s["splits"][k] for k in LIST_KEYS} == lists
+    run = train(out, "simple", tmp_path / "run", image_size=(48, 64), batch_size=2, max_steps=2, lr=1e-3,
+                num_workers=0, device="cpu", progress=False)
+    cfg = json.loads((run / "config.json").read_text())
+    assert np.allclose(cfg["keypoints"]["1"][1:], w["farthest_mm"]["cube_136"], atol=1e-3)  # the released ones
+    res = predict(run, out, "simple", tmp_path / "res.csv", device="cpu", num_workers=0, masks="gt", progress=False)
+    with open(res) as f:
+        rows = list(csv.DictReader(f))
+    assert {int(r["obj_id"]) for r in rows} <= {1, 2}  # an untrained network may find no pose at all
+    assert json.loads((tmp_path / "res_info.json").read_text())["images"] == lists["simple_test"]
+    sc = score(res, out, "simple", metrics="add,proj")
+    assert sc["all"]["n"] == lists["simple_test"]  # one target per single-object test frame

@@ -169,7 +169,7 @@ def test_a_run_without_its_config_or_with_a_foreign_one(data, tmp_path, capsys):
     (other / "config.json").write_text('{"method": "something else"}')
     code, err = cli(capsys, "train", "hff6dof", "--dataset", data["root"], "--split", "simple", "--out", other,
                     "--image-size", "32x32", "--workers", "0", "--device", "cpu")
-    one_line_error(code, err, "not an HFF6DoF run's", "would overwrite it")
+    one_line_error(code, err, "not a training run's", "would overwrite it")
     assert (other / "config.json").read_text() == '{"method": "something else"}'
 
 

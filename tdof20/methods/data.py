@@ -113,6 +113,42 @@ def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: 
     return images
 
 
+def dataset_meta(ds, classes: Sequence[int], image_size: Sequence[int], n_model_points: int = 500,
+                 seed: int = 0):
+    """The :class:`~tdof20.methods.base.MethodMeta` a method trains with on dataset ``ds`` (an
+    opened :class:`tdof20.formats.dataset.Dataset`): the objects ``classes`` in class order, their
+    keypoints (the dataset's), diameters and symmetries (models_info.json: symmetric when it
+    lists discrete or continuous symmetries), ``n_model_points`` area-uniform surface samples of
+    each model (deterministic in ``seed``) and the network input size."""
+    from tdof20.formats.bop import model_path, read_model_mesh
+    from tdof20.geometry.sampling import sample_mesh_surface
+    from tdof20.methods.base import MethodMeta
+
+    ids = [int(o) for o in classes]
+    info = ds.models_info
+    own = [o for o in ids if o in info]
+    missing = [o for o in ids if o not in info]
+    if missing and ds.layout != "tdof20":
+        raise TdofError(f"models_info.json lacks objects {missing}", ds.models_dir)
+    # a tdof20 dataset keeps the catalog's 20 classes: the objects it does not hold come from the catalog
+    cat = MethodMeta.from_catalog(missing, image_size, n_model_points, seed) if missing else None
+    kps = ds.keypoints(own) if own else {}
+    pts = {}
+    for o in own:
+        V, F = read_model_mesh(model_path(ds.models_dir, o))
+        pts[o] = sample_mesh_surface(V, F, int(n_model_points), seed)
+
+    def pick(table: dict, o: int, cat_table):
+        return table[o] if o in table else cat_table[o]
+
+    return MethodMeta(obj_ids=tuple(ids), keypoints={o: pick(kps, o, cat and cat.keypoints) for o in ids},
+                      diameters={o: float(info[o]["diameter"]) if o in info else cat.diameters[o] for o in ids},
+                      symmetric={o: bool(info[o].get("symmetries_discrete") or info[o].get("symmetries_continuous"))
+                                 if o in info else cat.symmetric[o] for o in ids},
+                      model_points={o: pick(pts, o, cat and cat.model_points) for o in ids},
+                      image_size=tuple(int(v) for v in image_size))
+
+
 # --------------------------------------------------------------------------------------------
 # keypoints
 
@@ -144,7 +180,7 @@ def keypoint_table(keypoints: Mapping[int, np.ndarray], n_classes: int = N_CLASS
         table = torch.full((len(classes) + 1, K, 3), float("nan"))
         for c, obj_id in enumerate(classes, start=1):
             if obj_id in keypoints:
-                table[c] = torch.as_tensor(np.asarray(keypoints[obj_id]), dtype=torch.float32)
+                table[c] = torch.from_numpy(np.array(keypoints[obj_id], dtype=np.float32))
         return table
     table = torch.full((n_classes, K, 3), float("nan"))
     for obj_id, kp in keypoints.items():

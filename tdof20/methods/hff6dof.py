@@ -167,6 +167,8 @@ def _mac_hook(counter: list[int]):
         elif isinstance(module, nn.Conv2d):
             kh, kw = module.kernel_size
             counter[0] += output.numel() * (module.in_channels // module.groups) * kh * kw
+        elif isinstance(module, nn.Conv1d):
+            counter[0] += output.numel() * (module.in_channels // module.groups) * module.kernel_size[0]
         elif isinstance(module, nn.Linear):
             counter[0] += output.numel() * module.in_features
     return hook
@@ -184,7 +186,7 @@ def _input_shapes(model: nn.Module, input_shape) -> list[tuple[int, ...]]:
 
 def count_macs(model: nn.Module, input_shape, meta: bool = True) -> int:
     """Multiply-accumulate operations of one forward pass, counted by forward hooks over
-    Conv2d / ConvTranspose2d / Linear (biases, BatchNorm, activations, interpolation not counted).
+    Conv1d / Conv2d / ConvTranspose2d / Linear (biases, BatchNorm, activations, interpolation not counted).
 
     input_shape: one shape (B,C,H,W), a sequence of shapes (one per forward argument), or for
     HFF6DoF simply (H, W), meaning rgb (1,3,H,W) and geo (1,6,H,W).
@@ -195,7 +197,7 @@ def count_macs(model: nn.Module, input_shape, meta: bool = True) -> int:
     counter = [0]
     hook = _mac_hook(counter)
     handles = [m.register_forward_hook(hook) for m in model.modules()
-               if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear))]
+               if isinstance(m, (nn.Conv1d, nn.Conv2d, nn.ConvTranspose2d, nn.Linear))]
     was_training = model.training
     model.eval()
     try:

@@ -1,11 +1,23 @@
-"""Inference with a trained HFF6DoF run: poses of the test images of a split, as a BOP results CSV
-(``tdof20 predict RUN --dataset ROOT --split simple|hard --out RESULTS.csv``).
+"""Inference with a trained run of any method: poses of the test images of a split, as a BOP
+results CSV (``tdof20 predict RUN --dataset ROOT --split simple|hard --out RESULTS.csv``); the run
+knows its method (config.json "method"), and the method's ``predict_poses`` gives the poses.
 
-Per image (paper section 3.5):
+Beside the CSV, ``<stem>_info.json`` records the run's method, its config ("method_config"), the
+input depth mode and the input (rgb / rgbd), timings and counts; ``tdof20 benchmark score`` prints
+them with the scores.
+
+The time written per image is the method's ``predict_poses`` (network + pose recovery,
+device-synchronised; reading and transforming the images is not counted), shared evenly among the
+images of a batch. The network's part is measured with forward hooks on the network and its direct
+sub-networks (the outermost call counts), so "network_ms_per_image" and "pose_ms_per_image" are
+apart for every method.
+
+HFF6DoF's pose recovery (:func:`recover_poses`, used by ``hff6dof_method.predict_poses``), per image
+(paper section 3.5):
 
 1. the network at the run's image size -> segmentation logits and the keypoint vector field;
 2. objects: the classes of the segmentation's argmax that cover at least ``min_pixels`` pixels
-   (without a segmentation head: the ground-truth visible masks, see ``masks``);
+   (without a segmentation head: the ground-truth visible masks, ``masks = "gt"``);
 3. keypoint voting, all objects of a batch at once, in one of two ways (``voting``):
 
    - ``bearing`` (default): *every* pixel of the object votes, with or without depth. A pixel's
@@ -15,17 +27,13 @@ Per image (paper section 3.5):
      the camera), and PnP of the model's keypoints onto the 9 bearings gives R, t. The depth only
      enters through the network's geometry input.
    - ``3d`` (the paper's): the object's pixels *with depth* (the input depth of the run's depth
-     mode: ``raw`` leaves the pixels without depth out, ``filled`` uses the filled depth,
-     ``restored`` the restored one) are back-projected and vote for 3D keypoints
+     mode) are back-projected and vote for 3D keypoints
      (:func:`~tdof20.methods.voting.vote_keypoints_batched`); Kabsch (least squares, weighted by
      each keypoint's inlier count) of the model's keypoints onto them gives R, t.
 
    On glass most sensor depth is missing or lies behind the surface, which biases ``3d`` voting;
    the comparison is in docs/hff6dof.md;
 4. score = the mean fraction of the object's voting pixels that are inliers.
-
-The time written per image is network + voting + fitting (device-synchronised; reading and
-preparing the images is not counted), shared evenly among the images of a batch.
 """
 
 from __future__ import annotations
@@ -39,10 +47,10 @@ import torch
 from tdof20.errors import TdofError
 from tdof20.formats import write_json
 from tdof20.formats.io import check_parents
-from tdof20.methods.data import HFFTransform, SceneImages, TransformedDataset, backproject, collate, keypoint_table, \
-    keypoints_from_json, split_part_images, worker_init
+from tdof20.methods.data import SceneImages, TransformedDataset, backproject, collate, split_part_images, \
+    worker_init
 from tdof20.methods.fitting import kabsch_torch
-from tdof20.methods.train import amp_dtype, load_run, run_classes, select_device
+from tdof20.methods.train import amp_dtype, depth_mode_of, open_run, select_device, to_device
 from tdof20.methods.voting import vote_keypoints_batched
 from tdof20.progress import console, progress as progress_bar
 
@@ -262,20 +270,54 @@ def recover_poses(seg_classes: torch.Tensor, vec: torch.Tensor, depth: torch.Ten
     return results
 
 
-def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: str | Path, *,
-            device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str = "auto",
-            min_pixels: int | None = None, max_points: int = 2000, n_hyp: int = 128, inlier_cos: float = 0.99,
-            voting: str = DEFAULT_VOTING, amp: bool | None = None, seed: int = 0, progress: bool = True) -> Path:
-    """Estimate the poses of every test image of ``split`` with the run in ``run_dir`` and write the
-    BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its path. A summary
-    (timings, counts, options) goes to ``<out_csv stem>_info.json`` beside it.
+class NetworkTimer:
+    """Time spent inside a network's forward calls (the network itself and its direct
+    sub-networks; only the outermost call counts), device-synchronised: what a method's
+    ``predict_poses`` spends in the network, apart from its pose recovery."""
 
-    masks: which pixels belong to which object — 'network' (the segmentation head's argmax),
-    'gt' (the dataset's visible masks: an oracle segmentation, for ablations; the only choice for a
-    run trained without the segmentation head), 'auto' = 'network' when the run has the head, else
-    'gt'. min_pixels: smallest segment taken (default 0.05 % of the image). max_points: random
-    pixels per object that vote. n_hyp, inlier_cos: RANSAC options. amp: mixed precision for the
-    network (None = on for CUDA). batch_size: images per forward pass.
+    def __init__(self, net: torch.nn.Module, dev: torch.device):
+        self.dev, self.seconds, self._depth, self._t0 = dev, 0.0, 0, 0.0
+        mods = [net, *net.children()]
+        self._handles = [h for m in mods for h in (m.register_forward_pre_hook(self._pre),
+                                                   m.register_forward_hook(self._post))]
+
+    def _pre(self, *_):
+        if self._depth == 0:
+            _sync(self.dev)
+            self._t0 = time.perf_counter()
+        self._depth += 1
+
+    def _post(self, *_):
+        self._depth -= 1
+        if self._depth == 0:
+            _sync(self.dev)
+            self.seconds += time.perf_counter() - self._t0
+
+    def close(self) -> None:
+        for h in self._handles:
+            h.remove()
+
+
+#: predict's options that set a field of the method's config (None: as the run's config says)
+PREDICT_OPTIONS = ("masks", "voting", "min_pixels", "max_points", "n_hyp", "inlier_cos")
+
+
+def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: str | Path, *,
+            device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str | None = None,
+            min_pixels: int | None = None, max_points: int | None = None, n_hyp: int | None = None,
+            inlier_cos: float | None = None, voting: str | None = None, amp: bool | None = None, seed: int = 0,
+            progress: bool = True, method_options: dict | None = None) -> Path:
+    """Estimate the poses of every test image of ``split`` with the run in ``run_dir`` (any method)
+    and write the BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its
+    path. A summary (method, its config, depth mode, timings, counts, options) goes to
+    ``<out_csv stem>_info.json`` beside it.
+
+    masks ('auto' | 'network' | 'gt'), voting ('bearing' | '3d'), min_pixels, max_points, n_hyp,
+    inlier_cos, and any option in ``method_options``: prediction options of the run's method config
+    (None = the run's; an option the method does not have is refused). For HFF6DoF: 'gt' masks
+    are the dataset's visible masks (an oracle segmentation, the only choice for a run trained
+    without the segmentation head; not a valid submission). amp: mixed precision for the network
+    (None = on for CUDA). batch_size: images per forward pass. seed: the pose recovery's generator.
     """
     from tdof20.benchmark.results import write_results_csv
 
@@ -285,29 +327,49 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     rows, info = predict_rows(run_dir, dataset_root, split, device=device, batch_size=batch_size,
                               num_workers=num_workers, masks=masks, min_pixels=min_pixels, max_points=max_points,
                               n_hyp=n_hyp, inlier_cos=inlier_cos, voting=voting, amp=amp, seed=seed,
-                              progress=progress)
+                              progress=progress, method_options=method_options)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_csv, rows)
     write_json(info_path(out_csv), info)
     if progress:
-        console.print(f"{info['predictions']} poses in {info['images']} images ({split}/test, masks: "
-                      f"{info['masks']}, depth: {info['depth_mode']}); network {info['network_ms_per_image']:.1f} ms"
-                      f" + pose {info['pose_ms_per_image']:.1f} ms per image -> {out_csv}")
+        console.print(f"{info['method']}: {info['predictions']} poses in {info['images']} images ({split}/test, "
+                      f"masks: {info['masks']}, depth: {info['depth_mode']}); network "
+                      f"{info['network_ms_per_image']:.1f} ms + pose {info['pose_ms_per_image']:.1f} ms per image "
+                      f"-> {out_csv}")
     return out_csv
 
 
+def _predict_config(method, cfg, options: dict):
+    """The run's method config with predict's options (those not None) applied; refused when the
+    method has no such option."""
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(cfg)}
+    changes = {k: v for k, v in options.items() if v is not None}
+    bad = [k for k in changes if k not in names]
+    if bad:
+        raise TdofError(f"--{bad[0].replace('_', '-')} is not an option of {method.name} runs "
+                        f"(its options: {', '.join(sorted(names))})")
+    return dataclasses.replace(cfg, **changes) if changes else cfg
+
+
+def _needs_labels(method, cfg, net) -> bool:
+    fn = getattr(method.load(), "needs_labels", None)
+    return bool(fn(cfg, net)) if fn is not None else False
+
+
 def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, device: str = "auto",
-                 batch_size: int = 1, num_workers: int = 2, masks: str = "auto", min_pixels: int | None = None,
-                 max_points: int = 2000, n_hyp: int = 128, inlier_cos: float = 0.99, voting: str = DEFAULT_VOTING,
-                 amp: bool | None = None,
-                 seed: int = 0, progress: bool = True, images: list[tuple[int, int]] | None = None
+                 batch_size: int = 1, num_workers: int = 2, masks: str | None = None, min_pixels: int | None = None,
+                 max_points: int | None = None, n_hyp: int | None = None, inlier_cos: float | None = None,
+                 voting: str | None = None, amp: bool | None = None, seed: int = 0, progress: bool = True,
+                 images: list[tuple[int, int]] | None = None, method_options: dict | None = None
                  ) -> tuple[list[tuple], dict]:
     """What :func:`predict` writes, without writing: (rows (scene_id, im_id, obj_id, score, R (3,3),
     t (3,) mm, time s), summary dict). ``images`` overrides the split's test images."""
     dataset_root = Path(dataset_root)
-    if masks not in MASK_SOURCES:
+    if masks is not None and masks not in MASK_SOURCES:
         raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
-    if voting not in VOTING:
+    if voting is not None and voting not in VOTING:
         raise TdofError(f"--voting must be one of {', '.join(VOTING)}, got '{voting}'")
     from tdof20.formats.dataset import open_dataset
 
@@ -318,81 +380,79 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     if not images:
         raise TdofError("no images to predict")
     dev = select_device(device)
-    net, config = load_run(run_dir, dev)
-    if masks == "auto":
-        masks = "network" if net.has_seg_head else "gt"
-    if masks == "network" and not net.has_seg_head:
-        raise TdofError("the run has no segmentation head: use --masks gt (ground-truth masks)", run_dir)
+    run = open_run(run_dir, dev)
+    method, net, meta = run.method, run.net, run.meta
+    cfg = _predict_config(method, run.cfg, {**dict(masks=masks, voting=voting, min_pixels=min_pixels,
+                                                   max_points=max_points, n_hyp=n_hyp, inlier_cos=inlier_cos),
+                                            **(method_options or {})})
+    cfg = _predict_config(method, cfg, {"seed": seed} if hasattr(cfg, "seed") else {})
+    mask_source = "network"
+    if method.name == "hff6dof":
+        from tdof20.methods.hff6dof_method import mask_source as hff_masks
+
+        try:
+            mask_source = hff_masks(cfg, net)
+        except TdofError as e:
+            raise TdofError(f"{e}: use --masks gt", run_dir) from None
+    labels = _needs_labels(method, cfg, net)
     use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
     if dev.type == "cuda":
         torch.backends.cudnn.benchmark = True
         net = net.to(memory_format=torch.channels_last)
-    image_size = tuple(config["image_size"])
-    depth_mode = config["depth_mode"]
-    class_ids = run_classes(config)  # class c -> object class_ids[c - 1] (a run without a list: c itself)
-    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), classes=class_ids)
-    if min_pixels is None:
-        min_pixels = default_min_pixels(image_size)
+    depth_mode = depth_mode_of(cfg)
     if depth_mode == "restored":  # rendered once (cached) where the dataset has none
         open_dataset(dataset_root, bop_split).render_restored(images, bop_split, show_progress=progress)
-    data = TransformedDataset(SceneImages(dataset_root, images, labels=masks == "gt",
-                                          restored=depth_mode == "restored", split=bop_split),
-                              HFFTransform(kp_table, image_size, depth_mode, targets=False, classes=class_ids))
+    data = TransformedDataset(SceneImages(dataset_root, images, labels=labels, restored=depth_mode == "restored",
+                                          split=bop_split),
+                              method.transform(cfg, meta, train=False))
     loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
                                          num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
                                          pin_memory=dev.type == "cuda")
-    gen = torch.Generator(device=dev).manual_seed(seed)
+    torch.manual_seed(seed)
     rows = []
-    t_net = t_pose = 0.0
-    n_img = n_obj = 0
-    show = bool(progress)
-    with torch.inference_mode(), progress_bar(show, unit="img") as bar:
-        task = bar.add_task(f"predict {split}/test", total=len(images))
-        for batch in loader:
-            rgb = batch["rgb"].to(dev, non_blocking=True)
-            geo = batch["geo"].to(dev, non_blocking=True)
-            if dev.type == "cuda":
-                rgb = rgb.contiguous(memory_format=torch.channels_last)
-                geo = geo.contiguous(memory_format=torch.channels_last)
-            depth = batch["depth"].to(dev, non_blocking=True)
-            K = batch["K"].to(dev)
-            label = batch["label"].to(dev) if masks == "gt" else None
-            _sync(dev)
-            t0 = time.perf_counter()
-            with torch.autocast(dev.type, dtype=amp_dtype(dev), enabled=use_amp):
-                out = net(rgb, geo)
-            vec = out["vec"].float()
-            if masks == "network":
-                prob = torch.softmax(out["seg"].float(), dim=1)
-                conf, classes = prob.max(dim=1)
-            else:
-                classes, conf = label, None
-            _sync(dev)
-            t1 = time.perf_counter()
-            res = recover_poses(classes, vec, depth, K, kp_table.to(dev), min_pixels, max_points=max_points,
-                                n_hyp=n_hyp, inlier_cos=inlier_cos, generator=gen, confidence=conf,
-                                voting=voting)
-            _sync(dev)
-            t2 = time.perf_counter()
-            B = rgb.shape[0]
-            per_image = (t2 - t0) / B
-            t_net += t1 - t0
-            t_pose += t2 - t1
-            for b in range(B):
-                sid, im = int(batch["scene_id"][b]), int(batch["im_id"][b])
-                for r in res[b]:
-                    rows.append((sid, im, class_ids[r["obj_id"] - 1], r["score"], r["R"], r["t"], per_image))
-                n_obj += len(res[b])
-            n_img += B
-            bar.advance(task, B)
-    info = {"run": str(Path(run_dir).resolve()), "dataset": str(dataset_root.resolve()), "split": split,
-            "images": n_img, "predictions": n_obj, "masks": masks, "depth_mode": depth_mode,
-            "image_size": list(image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),
-            "min_pixels": int(min_pixels), "max_points": int(max_points), "n_hyp": int(n_hyp),
-            "inlier_cos": float(inlier_cos), "voting": voting,
+    known = set(ds.obj_ids)
+    t_all = 0.0
+    n_img = n_foreign = 0
+    timer = NetworkTimer(net, dev)
+    try:
+        with torch.inference_mode(), progress_bar(bool(progress), unit="img") as bar:
+            task = bar.add_task(f"predict {split}/test", total=len(images))
+            for batch in loader:
+                batch = to_device(batch, dev)
+                _sync(dev)
+                t0 = time.perf_counter()
+                with torch.autocast(dev.type, dtype=amp_dtype(dev), enabled=use_amp):
+                    res = method.predict_poses(net, batch, cfg, meta)
+                _sync(dev)
+                dt = time.perf_counter() - t0
+                B = int(batch["rgb"].shape[0])
+                t_all += dt
+                sids, ims = batch["scene_id"].tolist(), batch["im_id"].tolist()
+                for b, obj, score, R, t in res:
+                    if int(obj) not in known:  # a class the run has but the dataset does not (the catalog's 20)
+                        n_foreign += 1
+                        continue
+                    rows.append((int(sids[b]), int(ims[b]), int(obj), float(score), np.asarray(R, np.float64),
+                                 np.asarray(t, np.float64), dt / B))
+                n_img += B
+                bar.advance(task, B)
+    finally:
+        timer.close()
+    t_net = min(timer.seconds, t_all)
+    info = {"run": str(Path(run_dir).resolve()), "method": method.name, "input": method.inputs,
+            "method_config": method.config_to_data(cfg), "dataset": str(dataset_root.resolve()), "split": split,
+            "images": n_img, "predictions": len(rows), "masks": mask_source,
+            "dropped_objects_not_in_dataset": n_foreign, "depth_mode": depth_mode,
+            "image_size": list(meta.image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),
+            "seed": int(seed),
             "network_ms_per_image": round(1000 * t_net / max(1, n_img), 3),
-            "pose_ms_per_image": round(1000 * t_pose / max(1, n_img), 3),
-            "fps": round(n_img / max(1e-9, t_net + t_pose), 2)}
+            "pose_ms_per_image": round(1000 * (t_all - t_net) / max(1, n_img), 3),
+            "fps": round(n_img / max(1e-9, t_all), 2)}
+    for k in PREDICT_OPTIONS:  # the options of the older summary, where the method has them
+        if hasattr(cfg, k) and k != "masks":
+            info[k] = getattr(cfg, k)
+    if method.name == "hff6dof":
+        info["min_pixels"] = int(cfg.min_pixels) or default_min_pixels(meta.image_size)
     return rows, info
 
 
@@ -402,7 +462,8 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
     """Intersection over union of the run's segmentation with the ground-truth visible labels on
     ``split``/``part``, at the run's image size: {"mean": mean over the object classes present,
     "per_class": {obj_id: IoU}, "pixel_accuracy": fraction of object pixels labelled right}. Pixels and
-    unions are pooled over the images."""
+    unions are pooled over the images. For a method whose network segments the image (HFF6DoF,
+    PVNet, DenseFusion's segmentation net; not FFB6D, which segments points)."""
     if images is None:
         images = split_part_images(dataset_root, split, part, "measure")
     from tdof20.formats.dataset import open_dataset
@@ -410,28 +471,35 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
     ds = open_dataset(dataset_root)
     bop_split = ds.check_split(split) if ds.layout == "bop" else None
     dev = select_device(device)
-    net, config = load_run(run_dir, dev)
-    if not net.has_seg_head:
+    run = open_run(run_dir, dev)
+    method, net, cfg, meta = run.method, run.net, run.cfg, run.meta
+    if getattr(net, "has_seg_head", True) is False:
         raise TdofError("the run has no segmentation head", run_dir)
-    classes = run_classes(config)
-    kp_table = keypoint_table(keypoints_from_json(config["keypoints"]), classes=classes)
-    if config["depth_mode"] == "restored":
+    if depth_mode_of(cfg) == "restored":
         ds.render_restored(images, bop_split, show_progress=False)
     data = TransformedDataset(SceneImages(dataset_root, images, labels=True,
-                                          restored=config["depth_mode"] == "restored", split=bop_split),
-                              HFFTransform(kp_table, config["image_size"], config["depth_mode"], targets=False,
-                                           classes=classes))
+                                          restored=depth_mode_of(cfg) == "restored", split=bop_split),
+                              method.transform(cfg, meta, train=False))
     loader = torch.utils.data.DataLoader(data, batch_size=batch_size, num_workers=num_workers, collate_fn=collate,
                                          worker_init_fn=worker_init)
-    n = config["network"]["n_classes"]
+    n = meta.n_classes
+    lut = torch.from_numpy(meta.class_lut())
     inter = torch.zeros(n, dtype=torch.long)
     union = torch.zeros(n, dtype=torch.long)
     present = torch.zeros(n, dtype=torch.bool)
     correct = total = 0
     with torch.inference_mode():
         for batch in loader:
-            pred = net(batch["rgb"].to(dev), batch["geo"].to(dev))["seg"].argmax(1).cpu()
-            lab = batch["label"]
+            batch = to_device(batch, dev)
+            seg = method.forward(net, batch)["seg"]
+            if seg.dim() != 4:
+                raise TdofError(f"{method.name} segments points, not the image: no segmentation IoU", run_dir)
+            pred = seg.argmax(1).cpu()
+            if "label" not in batch:
+                raise TdofError(f"{method.name}'s transform keeps no labels: no segmentation IoU", run_dir)
+            lab = batch["label"].cpu().long()
+            if method.name != "hff6dof":  # the HFF6DoF transform gives class indices already
+                lab = torch.where(lab < len(lut), lut[lab.clamp(0, len(lut) - 1)], torch.zeros_like(lab))
             inter += torch.bincount(lab[pred == lab].reshape(-1), minlength=n)[:n]
             union += (torch.bincount(lab.reshape(-1), minlength=n)[:n] + torch.bincount(pred.reshape(-1), minlength=n)[:n])
             present |= torch.bincount(lab.reshape(-1), minlength=n)[:n] > 0
@@ -439,6 +507,6 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
             correct += int((pred[obj] == lab[obj]).sum())
             total += int(obj.sum())
     union -= inter
-    per_class = {classes[c - 1]: float(inter[c]) / max(1, int(union[c])) for c in range(1, n) if present[c]}
+    per_class = {meta.obj_of(c): float(inter[c]) / max(1, int(union[c])) for c in range(1, n) if present[c]}
     return {"mean": float(np.mean(list(per_class.values()))) if per_class else 0.0, "per_class": per_class,
             "pixel_accuracy": correct / max(1, total)}

@@ -1,54 +1,71 @@
-"""Training HFF6DoF on a dataset split (``tdof20 train hff6dof``).
+"""Training any registered method on a dataset split (``tdof20 train METHOD``): one loop for all
+(device, AMP, DDP, checkpoints, resume, progress, loss curves), the method's pieces from the
+registry (:mod:`tdof20.methods.registry`).
 
     from tdof20.methods.train import train
-    run = train("ROOT", "simple", "runs/simple", image_size=(240, 320), epochs=20)
+    run = train("ROOT", "simple", "runs/simple", method="hff6dof", image_size=(240, 320), epochs=20)
+    run = train("ROOT", "simple", "runs/pvnet", method="pvnet", method_config={"n_hyp": 64})
 
 A run folder holds everything needed to resume and to predict:
 
-    RUN/config.json       network config, keypoints {obj_id: (9,3) mm}, image size, depth mode, and
-                          the training options (what predict rebuilds the network from)
+    RUN/config.json       the method, its config ("method_config"), its meta (objects in class order,
+                          keypoints, diameters, symmetries, surface samples, image size), the input
+                          depth mode, the split, the dataset and the training options (what predict
+                          rebuilds the network from); an HFF6DoF run also keeps its "network" table
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
     RUN/history.json      per-epoch losses, learning rate, images/s (several processes: each one's
                           weights digest at the end, which must agree)
-    RUN/loss.png          loss curves (total, segmentation, vector field) and learning rate
+    RUN/loss.png          loss curves (total and the method's parts) and learning rate
     RUN/data/{split}_train.h5   the packed training shard (made on first use, reused afterwards)
+
+Runs written before the interface (HFF6DoF's config.json without "method_config") still resume
+and predict: the method rebuilds its config from the run's "network" table.
 
 Running ``train`` again on the same RUN resumes from last.pt: the epoch and step counters, the
 optimiser's moments and the loss history continue; asking for more ``epochs`` (or a larger
-``max_steps``) extends the run. The network options must not change between calls.
+``max_steps``) extends the run. The method's options must not change between calls.
 
 Everything a call refuses (a damaged or foreign last.pt, an --out that is a file, an empty split
 part, changed options) is refused before anything is packed or written, and the files found are
 left as they are.
 
-Several processes: ``torchrun --nproc_per_node N -m tdof20 train hff6dof ...`` (or any launcher
+Options come from keyword arguments or a TOML file (``--config``, :func:`load_train_config`)::
+
+    [train]                      # TrainOptions: image_size, batch_size, epochs, lr, ...
+    batch_size = 4
+    [method]                     # the method's config (HFF6DoFConfig, PVNetConfig, ...)
+    fuse_stages = 2
+
+Several processes: ``torchrun --nproc_per_node N -m tdof20 train METHOD ...`` (or any launcher
 that sets RANK / LOCAL_RANK / WORLD_SIZE): one process per GPU (NCCL), or per CPU process with
-``--device cpu`` (gloo); DistributedDataParallel, a DistributedSampler, ``batch_size`` per
-process; only rank 0 packs, prints and writes; at the end the processes compare a digest of
-their weights (history.json's ``processes``).
+``--device cpu`` (gloo); DistributedDataParallel over the method's loss, a DistributedSampler,
+``batch_size`` per process; only rank 0 packs, prints and writes; at the end the processes compare
+a digest of their weights (history.json's ``processes``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
 import time
 import zipfile
+from collections.abc import Mapping
 from contextlib import nullcontext
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import torch
 
 from tdof20.errors import TdofError
 from tdof20.formats import read_json, write_json
 from tdof20.formats.io import check_parents
-from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_KEYPOINTS, HFFTransform, TransformedDataset,
-                                 check_depth_mode, collate, dataset_classes, identity_classes, keypoints_from_json,
-                                 keypoints_to_json, split_part_images, worker_init)
-from tdof20.methods.hff6dof import HFF6DoF
-from tdof20.methods.losses import hff_loss
+from tdof20.methods.data import (TransformedDataset, check_depth_mode, collate, dataset_classes, dataset_meta,
+                                 identity_classes, keypoints_to_json, split_part_images, worker_init)
+from tdof20.methods.registry import Method, get_method, method_names, run_method
 from tdof20.progress import console, progress as progress_bar
 
 LR_SCHEDULES = ("cosine", "step")
@@ -112,38 +129,132 @@ def lr_factor(step: int, total: int, schedule: str, warmup: int) -> float:
 # run folder
 
 
+# --------------------------------------------------------------------------------------------
+# options
+
+
+@dataclass
+class TrainOptions:
+    """The shared training options (TOML table ``[train]``); every default works.
+
+    image_size: (H, W) the images are resized to; () = the method's default size; (0, 0) = the
+    dataset's own size. max_steps: 0 = no limit (the epochs decide)."""
+
+    image_size: tuple[int, ...] = ()
+    batch_size: int = 8
+    epochs: int = 20
+    lr: float = 1e-3
+    lr_schedule: str = "cosine"
+    weight_decay: float = 1e-4
+    num_workers: int = 2
+    max_steps: int = 0
+    seed: int = 0
+    save_every_s: float = 600.0
+
+    def __post_init__(self) -> None:
+        self.image_size = tuple(int(v) for v in self.image_size)
+        if self.image_size and len(self.image_size) != 2:
+            raise TdofError(f"image_size must be [H, W], got {list(self.image_size)}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise TdofError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got '{self.lr_schedule}'")
+
+
+def load_train_config(path: str | Path, method: Method) -> tuple[TrainOptions, Any]:
+    """(TrainOptions, the method's config) from a TOML file with the tables [train] and [method]
+    (either may be left out); strict keys, one-line errors naming the file."""
+    import tomllib
+
+    from tdof20.config import config_from_data
+
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise TdofError("no such config file", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise TdofError(f"cannot be read ({e})", path) from None
+    except tomllib.TOMLDecodeError as e:
+        raise TdofError(f"is not valid TOML ({e})", path) from None
+    extra = sorted(set(data) - {"train", "method"})
+    if extra:
+        raise TdofError(f"unknown table(s) {', '.join(extra)} (known: train, method)", path)
+    return config_from_data(TrainOptions, data.get("train", {}), path), method.config_from(data.get("method"), path)
+
+
+def _replace(cfg, changes: Mapping[str, Any], method: Method):
+    """``cfg`` with the fields in ``changes`` replaced (checked by its __post_init__); a change to
+    a field the method's config lacks is a one-line error naming the option."""
+    names = {f.name for f in dataclasses.fields(cfg)}
+    for k in changes:
+        if k not in names:
+            raise TdofError(f"--{k.replace('_', '-')} is not an option of {method.name} "
+                            f"(its options: {', '.join(sorted(names))})")
+    return dataclasses.replace(cfg, **changes) if changes else cfg
+
+
+def make_method_config(method: Method, given=None, **changes):
+    """The method's config: ``given`` (a config, a dict of its options, or None = defaults) with
+    the ``changes`` that are not None applied."""
+    if given is None or isinstance(given, Mapping):
+        cfg = method.config_from(given or {}, "method options")
+    elif isinstance(given, method.config_class):
+        cfg = given
+    else:
+        raise TdofError(f"method_config for {method.name} must be a {method.config} or a dict, "
+                        f"got {type(given).__name__}")
+    return _replace(cfg, {k: v for k, v in changes.items() if v is not None}, method)
+
+
+def depth_mode_of(cfg) -> str:
+    """The input depth a method's config reads ('raw' | 'filled' | 'restored'), 'none' for RGB only."""
+    return str(getattr(cfg, "depth_mode", "none"))
+
+
+# --------------------------------------------------------------------------------------------
+# run folder
+
+
+#: the keys of an HFF6DoF run written before the interface (its "network" table)
 NETWORK_KEYS = ("n_classes", "n_keypoints", "fuse_stages", "seg_head", "decoder_channels", "head_channels",
                 "geo_channels")
-RUN_KEYS = ("network", "image_size", "depth_mode", "split", "keypoints")
-
-
-def build_network(config: dict, path: Path | None = None) -> HFF6DoF:
-    """The network described by a run's config.json (``path``: that file, for the error message)."""
-    net = config["network"]
-    try:
-        return HFF6DoF(n_classes=net["n_classes"], n_keypoints=net["n_keypoints"], fuse_stages=net["fuse_stages"],
-                       seg_head=net["seg_head"], decoder_channels=net["decoder_channels"],
-                       head_channels=net["head_channels"], geo_channels=net["geo_channels"])
-    except (ValueError, TypeError, RuntimeError) as e:
-        raise TdofError(f"its network options do not make a network ({e})", path) from None
+RUN_KEYS = ("image_size", "depth_mode", "split", "keypoints")
 
 
 def read_run_config(run_dir: str | Path, advice: str = "") -> dict:
-    """A run's config.json, checked to be an HFF6DoF run's with every key predict and resume need."""
+    """A run's config.json, checked to name a registered method and to hold every key predict and
+    resume need (an HFF6DoF run written before the interface: its "network" table)."""
     path = Path(run_dir) / CONFIG
     if not path.exists():
         raise TdofError(f"missing: the run folder holds {CHECKPOINT} without the {CONFIG} it belongs to{advice}", path)
     config = read_json(path)
-    if not isinstance(config, dict) or config.get("method") != "hff6dof":
-        raise TdofError(f"not an HFF6DoF run's {CONFIG}{advice}", path)
+    if not isinstance(config, dict) or not isinstance(config.get("method"), str):
+        raise TdofError(f"not a training run's {CONFIG} (it names no method){advice}", path)
+    run_method(config, path)
     missing = [k for k in RUN_KEYS if k not in config]
-    if isinstance(config.get("network"), dict):
-        missing += [f"network.{k}" for k in NETWORK_KEYS if k not in config["network"]]
-    elif "network" in config:
-        missing.append("network (not a table)")
+    if "method_config" not in config:
+        if isinstance(config.get("network"), dict):
+            missing += [f"network.{k}" for k in NETWORK_KEYS if k not in config["network"]]
+        else:
+            missing.append("network (not a table)" if "network" in config else "method_config")
     if missing:
         raise TdofError(f"lacks {', '.join(missing)}{advice}", path)
     return config
+
+
+def build_network(config: dict, path: Path | None = None) -> torch.nn.Module:
+    """The network a run's config.json describes (``path``: that file, for the message)."""
+    return open_config(config, path)[2]
+
+
+def open_config(config: dict, path: Path | None = None) -> tuple[Method, Any, torch.nn.Module, Any]:
+    """(method, cfg, network with fresh weights, meta) of a run's config.json."""
+    method = run_method(config, path)
+    cfg, meta = method.config_from_run(config, path)
+    try:
+        return method, cfg, method.build(cfg, meta), meta
+    except (ValueError, TypeError, RuntimeError) as e:
+        raise TdofError(f"its options do not make a {method.name} network ({e})", path) from None
+
 
 
 def _size_text(n: int) -> str:
@@ -209,16 +320,21 @@ def _examples(keys: list[str]) -> str:
     return ", ".join(keys[:2]) + (", ..." if len(keys) > 2 else "")
 
 
-def check_weights(net: HFF6DoF, ckpt: dict, config: dict, path: Path, advice: str = "") -> None:
+def check_weights(net: torch.nn.Module, ckpt: dict, config: dict, path: Path, advice: str = "") -> None:
     """A one-line TdofError naming the checkpoint ``path`` when its weights do not fit ``net`` (the
     network ``config``, the run's config.json, describes; it may live on the meta device) or the
     checkpoint was written by a run of other options."""
     why = []
     saved = ckpt.get("config")
     if isinstance(saved, dict):
+        if saved.get("method") not in (None, config.get("method")):
+            why.append(f"a {saved.get('method')} network here, {config.get('method')} in {CONFIG}")
         old, now = saved.get("network") or {}, config.get("network") or {}
         why += [f"{k} {old.get(k)} here, {now.get(k)} in {CONFIG}" for k in NETWORK_KEYS
                 if k in old and old.get(k) != now.get(k)]
+        old, now = saved.get("method_config") or {}, config.get("method_config") or {}
+        why += [f"{k} {old.get(k)} here, {now.get(k)} in {CONFIG}" for k in sorted(set(old) & set(now))
+                if old.get(k) != now.get(k) and k not in saved.get("network", {})]
         why += [f"{k} {saved.get(k)} here, {config.get(k)} in {CONFIG}" for k in ("image_size", "depth_mode")
                 if k in saved and saved.get(k) != config.get(k)]
         if "keypoints" in saved and saved["keypoints"] != config.get("keypoints"):
@@ -240,28 +356,48 @@ def check_weights(net: HFF6DoF, ckpt: dict, config: dict, path: Path, advice: st
 
 
 def run_classes(config: dict) -> list[int]:
-    """The object id of each class 1..n of a run (config.json's "classes"; a run recorded without
-    one: ids 1..n_classes-1, class = obj_id)."""
+    """The object id of each class 1..n of a run (its meta's objects, else config.json's
+    "classes"; an HFF6DoF run recorded without either: ids 1..n_classes-1, class = obj_id)."""
+    if isinstance(config.get("meta"), dict) and "obj_ids" in config["meta"]:
+        return [int(c) for c in config["meta"]["obj_ids"]]
     classes = config.get("classes")
     if classes is None:
         return identity_classes(config["network"]["n_classes"])
     return [int(c) for c in classes]
 
 
-def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[HFF6DoF, dict]:
-    """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
+class Run(NamedTuple):
+    """A trained run, opened: its method, the method's config, the network (last weights, eval
+    mode), the meta and the run's config.json."""
+    method: Method
+    cfg: Any
+    net: torch.nn.Module
+    meta: Any
+    config: dict
+
+
+def open_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Run:
+    """The run in ``run_dir`` with its last weights on ``device`` (any registered method; HFF6DoF
+    runs written before the interface too)."""
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
-        raise TdofError("is a file, not a run folder (tdof20 train hff6dof --out makes one)", run_dir)
+        raise TdofError("is a file, not a run folder (tdof20 train METHOD --out makes one)", run_dir)
     if not (run_dir / CONFIG).exists() or not (run_dir / CHECKPOINT).exists():
-        raise TdofError(f"not an HFF6DoF run (needs {CONFIG} and {CHECKPOINT}; train one first)", run_dir)
+        raise TdofError(f"not an HFF6DoF run nor another method's (a run folder holds {CONFIG} and {CHECKPOINT}; "
+                        f"train one first: tdof20 train METHOD)", run_dir)
     advice = ": restore it from a copy, or train a new run into another --out"
     config = read_run_config(run_dir)
     ckpt = read_checkpoint(run_dir / CHECKPOINT, advice=advice, mmap=True)
-    net = build_network(config, run_dir / CONFIG)
+    method, cfg, net, meta = open_config(config, run_dir / CONFIG)
     check_weights(net, ckpt, config, run_dir / CHECKPOINT, advice)
     net.load_state_dict(ckpt["model"])
-    return net.to(device).eval(), config
+    return Run(method, cfg, net.to(device).eval(), meta, config)
+
+
+def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[torch.nn.Module, dict]:
+    """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
+    r = open_run(run_dir, device)
+    return r.net, r.config
 
 
 def check_run_folder(out_run: Path, dataset_root: Path) -> None:
@@ -275,12 +411,13 @@ def check_run_folder(out_run: Path, dataset_root: Path) -> None:
     cfg = out_run / CONFIG
     if cfg.exists() and not (out_run / CHECKPOINT).exists():
         try:
-            foreign = read_json(cfg).get("method") != "hff6dof"
+            foreign = read_json(cfg).get("method") not in method_names()
         except (TdofError, AttributeError):
             foreign = True
         if foreign:
-            raise TdofError(f"--out holds a {CONFIG} that is not an HFF6DoF run's (training would overwrite it): "
+            raise TdofError(f"--out holds a {CONFIG} that is not a training run's (training would overwrite it): "
                             "give another --out", out_run)
+
 
 
 def parameters_digest(net: torch.nn.Module) -> str:
@@ -298,8 +435,13 @@ def _save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def plot_losses(history: list[dict], path: Path) -> Path:
-    """Loss curves (per step, with a moving average) and the learning rate, as a PNG."""
+#: history keys that are not losses
+_NOT_LOSSES = ("step", "epoch", "lr")
+
+
+def plot_losses(history: list[dict], path: Path, title: str = "training") -> Path:
+    """Loss curves (total and every part the method's loss reports, per step, with a moving
+    average) and the learning rate, as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -309,13 +451,18 @@ def plot_losses(history: list[dict], path: Path) -> Path:
     steps = np.array([h["step"] for h in history])
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
     w = max(1, len(history) // 50)
-    for key, colour in (("loss", "black"), ("seg", "tab:blue"), ("vec", "tab:orange")):
-        y = np.array([h[key] for h in history], dtype=float)
+    keys = ["loss"] + sorted({k for h in history for k in h} - {"loss", *_NOT_LOSSES})
+    names = {"loss": "total", "seg": "segmentation", "vec": "vector field (L1)"}
+    for i, key in enumerate(keys):
+        y = np.array([h.get(key, np.nan) for h in history], dtype=float)
+        y = np.where(y > 0, y, np.nan)  # a log axis: parts that are 0 or negative are not drawn
+        if not np.isfinite(y).any():
+            continue
+        colour = "black" if key == "loss" else f"C{i - 1}"
         ax.plot(steps, y, color=colour, alpha=0.25, lw=0.8)
         if len(y) >= w:
-            ys = np.convolve(y, np.ones(w) / w, mode="valid")
-            ax.plot(steps[w - 1:], ys, color=colour, lw=1.6, label={"loss": "total", "seg": "segmentation (CE)",
-                                                                     "vec": "vector field (L1)"}[key])
+            ys = np.convolve(np.nan_to_num(y, nan=np.nanmean(y)), np.ones(w) / w, mode="valid")
+            ax.plot(steps[w - 1:], ys, color=colour, lw=1.6, label=names.get(key, key))
     ax.set_yscale("log")
     ax.set_xlabel("optimiser step")
     ax.set_ylabel("loss")
@@ -326,7 +473,7 @@ def plot_losses(history: list[dict], path: Path) -> Path:
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
-    ax.set_title("HFF6DoF training")
+    ax.set_title(title)
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp)
@@ -336,8 +483,14 @@ def plot_losses(history: list[dict], path: Path) -> Path:
 
 
 def _check_same(saved: dict, new: dict, path: Path) -> None:
+    """Refuse to resume a run with other method, network, data or batch options."""
+    pairs = [("method", saved.get("method"), new.get("method"))]
+    if "method_config" in saved and "method_config" in new:
+        old_m, new_m = saved["method_config"], new["method_config"]
+        pairs += [(f"{new['method']} option {k}", old_m.get(k), new_m.get(k)) for k in sorted(set(old_m) | set(new_m))]
     old_net, new_net = saved.get("network") or {}, new.get("network") or {}
-    pairs = [(f"network {k}", old_net.get(k), new_net.get(k)) for k in sorted(set(old_net) | set(new_net))]
+    pairs += [(f"network {k}", old_net.get(k), new_net.get(k)) for k in sorted(set(old_net) | set(new_net))
+              if old_net and new_net]
     pairs += [(key, saved.get(key), new.get(key)) for key in ("image_size", "depth_mode", "split")]
     pairs.append(("classes (object ids)", run_classes(saved), run_classes(new)))
     pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
@@ -345,6 +498,7 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
         if old != now:
             raise TdofError(f"the run was started with {key} = {old}, now {now}: use another --out for "
                             "other network or data options", path)
+
 
 
 def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
@@ -366,39 +520,78 @@ def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path 
 # training
 
 
-def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
-          image_size: tuple[int, int] | None = (240, 320), batch_size: int = 8, epochs: int = 20,
-          lr: float = 1e-3, lr_schedule: str = "cosine", weight_decay: float = 1e-4,
-          depth_mode: str = DEFAULT_DEPTH_MODE, fuse_stages: int = 3, seg_head: bool = True,
+# --------------------------------------------------------------------------------------------
+# training
+
+
+class LossModule(torch.nn.Module):
+    """The method's loss as a module, ``forward(batch) -> total``, so that DistributedDataParallel
+    sees every network call of the loss (a method's loss may call sub-networks directly); the
+    parts of the last call are in ``parts``."""
+
+    def __init__(self, method: Method, net: torch.nn.Module, cfg, meta):
+        super().__init__()
+        self.net = net
+        self.method, self.cfg, self.meta = method, cfg, meta
+        self.parts: dict[str, float] = {}
+
+    def forward(self, batch: dict) -> torch.Tensor:
+        total, self.parts = self.method.loss(self.net, batch, self.cfg, self.meta)
+        return total
+
+
+def to_device(batch: Mapping, dev: torch.device) -> dict:
+    """The tensors of a batch on ``dev`` (others as they are)."""
+    pin = dev.type == "cuda"
+    return {k: v.to(dev, non_blocking=pin) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
+def _meta_json(meta) -> dict:
+    d = meta.to_json()
+    d["model_points"] = {k: [[round(float(x), 3) for x in p] for p in v] for k, v in d["model_points"].items()}
+    return d
+
+
+_METHOD_DEFAULT = "method"
+
+
+def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: str = "hff6dof",
+          method_config=None, image_size: tuple[int, int] | None | str = _METHOD_DEFAULT, batch_size: int = 8,
+          epochs: int = 20, lr: float = 1e-3, lr_schedule: str = "cosine", weight_decay: float = 1e-4,
+          depth_mode: str | None = None, fuse_stages: int | None = None, seg_head: bool | None = None,
           device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
           seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
           save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None) -> Path:
-    """Train (or resume training) HFF6DoF on the train part of ``split`` of the dataset at
+    """Train (or resume training) ``method`` on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
+    method: a registered method (tdof20.methods.registry). method_config: its config (a dataclass,
+    a dict of its options, or None = its defaults); depth_mode ('raw' | 'filled' | 'restored', the
+    last privileged), fuse_stages, seg_head (HFF6DoF's ablation options) and backbone_weights (a
+    torchvision checkpoint for the method's ResNet) are shortcuts for options of that config (None:
+    as the config says; an option the method lacks is refused).
     image_size: (H, W) the images are resized to (colour by area, depth and labels by nearest
-    neighbour, K scaled); None = the dataset's own size. batch_size: images per optimiser step per
-    process. epochs: passes over the training images in all (counting earlier calls on this run).
-    lr, lr_schedule ('cosine' | 'step'), weight_decay: AdamW with a short linear warm-up.
-    depth_mode: 'raw' | 'filled' | 'restored' (tdof20.methods.data; 'restored' is privileged).
-    fuse_stages (1-5), seg_head: the network's ablation options. device: 'auto' | 'cpu' | 'cuda' |
-    'cuda:N' | 'mps'. amp: mixed precision (None = on for CUDA; bf16 where supported, else fp16 with
-    loss scaling). max_steps: stop after this many optimiser steps in all (the schedule then spans
-    them). backbone_weights: a torchvision resnet34 state dict (.pth) for both encoders. shard: an
-    HDF5 file from `tdof20 dataset pack` to train on instead of packing into RUN/data/.
+    neighbour, K scaled); 'method' = the method's default size; None = the dataset's own size.
+    batch_size: images per optimiser step per process. epochs: passes over the training images in
+    all (counting earlier calls on this run). lr, lr_schedule ('cosine' | 'step'), weight_decay:
+    AdamW with a short linear warm-up. device: 'auto' | 'cpu' | 'cuda' | 'cuda:N' | 'mps'. amp:
+    mixed precision (None = on for CUDA; bf16 where supported, else fp16 with loss scaling).
+    max_steps: stop after this many optimiser steps in all (the schedule then spans them). shard:
+    an HDF5 file from `tdof20 dataset pack` to train on instead of packing into RUN/data/.
     save_every_s: checkpoint at the end of an epoch when the last checkpoint is older than this many
-    seconds (0 = after every epoch), and always when the run ends (a checkpoint holds the model and
-    AdamW's two moments: about 680 MB for the default network).
+    seconds (0 = after every epoch), and always when the run ends.
 
     Any dataset layout (tdof20's, BOP's: ``split`` is then a split folder such as 'train_pbr') and
-    any object ids: classes 1..n map to the dataset's objects (config.json "classes"; a tdof20
-    dataset within ids 1..20 keeps the catalog's 20). Restored depth the dataset lacks is rendered
-    once into ROOT/.cache/ (or ``cache_dir``) when the shard is packed.
+    any object ids: classes 1..n map to the dataset's objects (the run's meta; a tdof20 dataset
+    within ids 1..20 keeps the catalog's 20). Restored depth the dataset lacks is rendered once
+    into ROOT/.cache/ (or ``cache_dir``) when the shard is packed (training targets use it; the
+    input depth of every method is the sensor's, raw or filled, unless depth_mode says 'restored').
     """
     from tdof20.formats.shards import ShardDataset
 
     rank, local_rank, world = _distributed()
     try:  # the checks before any work
+        m = get_method(method)
         dataset_root = Path(dataset_root)
         out_run = Path(out_run)
         from tdof20.formats.dataset import open_dataset
@@ -409,13 +602,21 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                 raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
         else:
             split = ds.check_split(split)
-        check_depth_mode(depth_mode)
+        if depth_mode is not None:
+            check_depth_mode(depth_mode)
         if lr_schedule not in LR_SCHEDULES:
             raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
         if batch_size < 1 or epochs < 1 or lr <= 0:
             raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
-        if not 1 <= int(fuse_stages) <= 5:
+        if fuse_stages is not None and not 1 <= int(fuse_stages) <= 5:
             raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
+        cfg = make_method_config(m, method_config, depth_mode=depth_mode, fuse_stages=fuse_stages,
+                               seg_head=seg_head,
+                               backbone_weights=None if backbone_weights is None else str(backbone_weights))
+        if isinstance(image_size, str):
+            if image_size != _METHOD_DEFAULT:
+                raise TdofError(f"image_size must be (H, W), None or '{_METHOD_DEFAULT}', got '{image_size}'")
+            image_size = tuple(m.default_image_size)
 
         check_run_folder(out_run, dataset_root)
         if shard is None:
@@ -436,22 +637,27 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
         # the run to resume, read and checked before anything is written or packed
         ckpt_path = out_run / CHECKPOINT
         resume = ckpt_path.exists()
-        ckpt = saved = None
+        ckpt = saved = saved_meta = None
         if resume:
             advice = (f": move {CHECKPOINT} out of the run folder to start the run afresh, or train into another "
                       "--out")
             saved = read_run_config(out_run, advice)
             ckpt = read_checkpoint(ckpt_path, needs=("model", "optimizer", "epoch", "step", "history"), advice=advice)
             with torch.device("meta"):  # shapes only: nothing is allocated
-                check_weights(build_network(saved, out_run / CONFIG), ckpt, saved, ckpt_path, advice)
-                asked = HFF6DoF(n_classes=len(run_classes(saved)) + 1, n_keypoints=N_KEYPOINTS,
-                                fuse_stages=fuse_stages, seg_head=seg_head).config
+                saved_m, _, saved_net, saved_meta = open_config(saved, out_run / CONFIG)
+                check_weights(saved_net, ckpt, saved, ckpt_path, advice)
+            if saved_m.name != m.name:
+                raise TdofError(f"the run was started with method = {saved_m.name}, now {m.name}: use another --out "
+                                "for another method", out_run / CONFIG)
             # the options that must not change, before the work (a native image size is known later)
-            _check_same(saved, {"network": {k: list(v) if isinstance(v, tuple) else v for k, v in asked.items()},
-                                "image_size": saved.get("image_size") if image_size is None else
-                                [int(image_size[0]), int(image_size[1])],
-                                "depth_mode": depth_mode, "split": split, "train": {"batch_size": batch_size}},
-                        out_run / CONFIG)
+            early = {"method": m.name, "image_size": saved.get("image_size") if image_size is None else
+                     [int(image_size[0]), int(image_size[1])], "depth_mode": depth_mode_of(cfg), "split": split,
+                     "classes": run_classes(saved), "train": {"batch_size": batch_size},
+                     "method_config": m.config_to_data(cfg)}
+            if m.name == "hff6dof":
+                with torch.device("meta"):
+                    early["network"] = _network_table(m.build(cfg, saved_meta))
+            _check_same(saved, early, out_run / CONFIG)
             try:
                 ckpt_epoch, ckpt_step = int(ckpt["epoch"]), int(ckpt["step"])
                 ckpt_history = list(ckpt["history"])
@@ -492,29 +698,34 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                             f"{world} processes: use fewer processes", shard_path)
 
         if resume:
-            keypoints = keypoints_from_json(saved["keypoints"])
-            classes = run_classes(saved)
+            from tdof20.methods.base import MethodMeta
+            meta = MethodMeta(obj_ids=saved_meta.obj_ids, keypoints=saved_meta.keypoints,
+                              diameters=saved_meta.diameters, symmetric=saved_meta.symmetric,
+                              model_points=saved_meta.model_points, image_size=image_size)
+            if "meta" not in saved and ds.layout and set(meta.obj_ids) <= set(ds.obj_ids):
+                # a run from before the interface recorded no model samples: take them from the dataset
+                meta = dataset_meta(ds, meta.obj_ids, image_size)
+                meta = MethodMeta(obj_ids=meta.obj_ids, keypoints=saved_meta.keypoints, diameters=meta.diameters,
+                                  symmetric=meta.symmetric, model_points=meta.model_points, image_size=image_size)
         else:
-            keypoints = ds.keypoints()
-            classes = dataset_classes(ds.obj_ids, ds.layout)
+            meta = dataset_meta(ds, dataset_classes(ds.obj_ids, ds.layout), image_size)
         torch.manual_seed(seed)
-        net = HFF6DoF(n_classes=len(classes) + 1, n_keypoints=N_KEYPOINTS, fuse_stages=fuse_stages, seg_head=seg_head)
+        net = m.build(cfg, meta)
         options = dict(batch_size=batch_size, epochs=epochs, lr=lr, lr_schedule=lr_schedule,
                        weight_decay=weight_decay, amp=use_amp, num_workers=num_workers, max_steps=max_steps,
                        seed=seed, backbone_weights=None if backbone_weights is None else str(backbone_weights),
                        world_size=world, device=str(dev))
-        config = {"method": "hff6dof", "version": 1,
-                  "network": {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()},
-                  "image_size": list(image_size), "depth_mode": depth_mode, "split": split,
+        config = {"method": m.name, "version": 2, "method_config": m.config_to_data(cfg), "meta": _meta_json(meta),
+                  "input": m.inputs, "image_size": list(image_size), "depth_mode": depth_mode_of(cfg), "split": split,
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
-                  "keypoints": keypoints_to_json(keypoints), "classes": classes,
-                  "objects": {str(o): ds.object_name(o) for o in classes if o in ds.models_info},
+                  "keypoints": keypoints_to_json(meta.keypoints), "classes": list(meta.obj_ids),
+                  "objects": {str(o): ds.object_name(o) for o in meta.obj_ids if o in ds.models_info},
                   "layout": ds.layout, "train": options}
+        if m.name == "hff6dof":
+            config["network"] = _network_table(net)
         if resume:
             _check_same(saved, config, out_run / CONFIG)
             net.load_state_dict(ckpt["model"])
-        elif backbone_weights is not None:
-            net.load_backbone_weights(backbone_weights)
         net = net.to(dev)
         if dev.type == "cuda":
             net = net.to(memory_format=torch.channels_last)
@@ -537,15 +748,16 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
             ckpt = None  # the weights now live in the network and the optimiser
         if main:  # written once the run's state is known to load
             write_json(out_run / CONFIG, config)
-        model = net
+        loss_module = LossModule(m, net, cfg, meta)
+        model = loss_module
         if world > 1:
             if dev.type == "cuda":
                 model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
             model = torch.nn.parallel.DistributedDataParallel(
-                model, device_ids=[local_rank] if dev.type == "cuda" else None)
+                model, device_ids=[local_rank] if dev.type == "cuda" else None,
+                find_unused_parameters=m.name != "hff6dof")
 
-        transform = HFFTransform(keypoints, image_size, depth_mode, targets=True, classes=classes)
-        tdata = TransformedDataset(data, transform)
+        tdata = TransformedDataset(data, m.transform(cfg, meta, train=True))
         n = len(tdata)
         per_rank = n // world
         bs = min(batch_size, max(1, per_rank))
@@ -557,8 +769,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
         sampler = torch.utils.data.DistributedSampler(tdata, num_replicas=world, rank=rank, shuffle=True,
                                                       seed=seed, drop_last=True)
         if main and show:
-            console.print(f"HFF6DoF on {split}/train: {n} images at {image_size[0]}x{image_size[1]}, depth "
-                          f"{depth_mode}, batch {bs} x {world} process(es), {steps_per_epoch} steps/epoch, "
+            console.print(f"{m.name} on {split}/train: {n} images at {image_size[0]}x{image_size[1]}, depth "
+                          f"{depth_mode_of(cfg)}, batch {bs} x {world} process(es), {steps_per_epoch} steps/epoch, "
                           f"device {dev}{' (AMP ' + str(amp_dtype(dev)).split('.')[-1] + ')' if use_amp else ''}"
                           + (f", resuming at epoch {epoch}, step {step}" if resume else ""))
 
@@ -575,7 +787,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
             write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step,
                                                    **({"processes": processes} if processes else {})})
             if history:
-                plot_losses(history, out_run / "loss.png")
+                plot_losses(history, out_run / "loss.png", f"{m.name} training")
 
         global_bs = bs * world
         start_step = step
@@ -590,47 +802,42 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                     worker_init_fn=worker_init,
                     drop_last=True, pin_memory=dev.type == "cuda", persistent_workers=False)
                 model.train()
-                t0, n_img, sums = time.perf_counter(), 0, {"loss": 0.0, "seg": 0.0, "vec": 0.0}
+                t0, n_img, sums, counts = time.perf_counter(), 0, {}, {}
                 n_steps = 0
                 for batch in loader:
                     if step >= total:
                         break
-                    rgb = batch["rgb"].to(dev, non_blocking=True)
-                    geo = batch["geo"].to(dev, non_blocking=True)
-                    if dev.type == "cuda":
-                        rgb = rgb.contiguous(memory_format=torch.channels_last)
-                        geo = geo.contiguous(memory_format=torch.channels_last)
+                    batch = to_device(batch, dev)
                     lr_now = lr * lr_factor(step, total, lr_schedule, warmup)
                     for g in opt.param_groups:
                         g["lr"] = lr_now
                     ctx = torch.autocast(dev.type, dtype=amp_dtype(dev)) if use_amp else nullcontext()
                     with ctx:
-                        out = model(rgb, geo)
-                    seg = out["seg"].float() if out["seg"] is not None else None
-                    loss, parts = hff_loss(seg, out["vec"].float(), batch["seg"].to(dev), batch["vec"].to(dev),
-                                           batch["mask"].to(dev), return_parts=True)
+                        loss = model(batch)
                     opt.zero_grad(set_to_none=True)
                     scaler.scale(loss).backward()
                     scaler.step(opt)
                     scaler.update()
                     step += 1
                     n_steps += 1
-                    n_img += rgb.shape[0] * world
-                    rec = {"step": step, "epoch": epoch, "loss": float(loss.detach()), "seg": float(parts["seg"]),
-                           "vec": float(parts["vec"]), "lr": lr_now}
+                    n_img += batch["rgb"].shape[0] * world
+                    parts = {k: float(v) for k, v in loss_module.parts.items() if k != "loss"}
+                    rec = {"step": step, "epoch": epoch, "loss": float(loss.detach()), **parts, "lr": lr_now}
                     if not math.isfinite(rec["loss"]):
                         raise TdofError(f"the loss became {rec['loss']} at step {step}: lower --lr "
                                         "(the last good checkpoint is kept)", out_run)
                     history.append(rec)
-                    for k in sums:
-                        sums[k] += rec[k]
+                    for k, v in rec.items():
+                        if k not in _NOT_LOSSES and math.isfinite(v):
+                            sums[k] = sums.get(k, 0.0) + v
+                            counts[k] = counts.get(k, 0) + 1
                     bar.update(task, advance=global_bs,
                                description=f"epoch {epoch + 1}/{epochs} loss {rec['loss']:.3f}")
                 dt = time.perf_counter() - t0
                 if step >= (epoch + 1) * steps_per_epoch or step >= total:
                     if n_steps:
                         epochs_log.append({"epoch": epoch + 1, "steps": step,
-                                           **{k: v / n_steps for k, v in sums.items()},
+                                           **{k: v / counts[k] for k, v in sums.items()},
                                            "lr": history[-1]["lr"], "seconds": round(dt, 2),
                                            "images_per_s": round(n_img / dt, 2) if dt > 0 else None})
                     if step >= (epoch + 1) * steps_per_epoch:
@@ -639,8 +846,10 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
                     save()
                 if show and epochs_log:
                     e = epochs_log[-1]
-                    console.print(f"epoch {e['epoch']}: loss {e['loss']:.4f} (seg {e['seg']:.4f}, vec {e['vec']:.4f}), "
-                                  f"{e['images_per_s']} images/s")
+                    others = ", ".join(f"{k} {v:.4f}" for k, v in e.items()
+                                       if k not in ("epoch", "steps", "loss", "lr", "seconds", "images_per_s"))
+                    console.print(f"epoch {e['epoch']}: loss {e['loss']:.4f}" + (f" ({others})" if others else "")
+                                  + f", {e['images_per_s']} images/s")
         processes = None
         if dist is not None:
             processes = {"world_size": world, "backend": dist.get_backend(),
@@ -662,3 +871,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *,
         if dist is not None and dist.is_initialized():
             dist.destroy_process_group()
     return out_run
+
+
+def _network_table(net) -> dict:
+    """An HFF6DoF network's "network" table (what runs before the interface recorded)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()}

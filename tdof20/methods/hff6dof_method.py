@@ -1,0 +1,238 @@
+"""HFF6DoF behind the method interface (:mod:`tdof20.methods.registry`): its config, network,
+transform, loss and pose recovery as the five pieces every method has.
+
+    m = get_method("hff6dof")
+    cfg = HFF6DoFConfig(fuse_stages=3, seg_head=True, depth_mode="filled", voting="bearing")
+    net = build(cfg, meta)                                   # HFF6DoF (tdof20.methods.hff6dof)
+    tf = HFF6DoFTransform(cfg, meta, train=True)             # wraps data.HFFTransform
+    total, parts = loss(net, collate([tf(i) for i in items]), cfg, meta)   # losses.hff_loss
+    rows = predict_poses(net, batch, cfg, meta)              # predict.recover_poses
+
+The pieces wrap the existing code (data.HFFTransform, losses.hff_loss, predict.recover_poses)
+without changing it. A run written before the interface (config.json {"method": "hff6dof",
+"network": {...}, "keypoints": ..., "image_size": ..., "depth_mode": ...}, with or without
+"classes") gives its (cfg, meta) through :func:`config_from_run`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tdof20.errors import TdofError
+from tdof20.methods.base import MethodMeta
+from tdof20.methods.data import DEFAULT_DEPTH_MODE, HFFTransform, check_depth_mode, identity_classes, \
+    keypoints_from_json
+from tdof20.methods.hff6dof import DEFAULT_DECODER_CHANNELS, DEFAULT_HEAD_CHANNELS, HFF6DoF
+from tdof20.methods.losses import hff_loss
+
+MASKS = ("auto", "network", "gt")
+VOTINGS = ("bearing", "3d")
+
+
+@dataclass
+class HFF6DoFConfig:
+    """HFF6DoF's options (plain types, TOML-settable); every default works.
+
+    Network: fuse_stages (1..5: the last N encoder stages fused; the paper's 3), seg_head (the
+    segmentation head; off = the paper's ablation, prediction then needs ground-truth masks),
+    decoder_channels (6 widths at strides 1..32) and head_channels (sized to the paper's 56.82 M),
+    backbone_weights (a torchvision resnet34 .pth for both encoders; "" = random init).
+    Input: depth_mode 'raw' | 'filled' (the transparent sensor's depth; 'restored' is privileged,
+    an upper bound only). Loss: w_vec (weight of the vector field's L1; the paper's 2).
+    Prediction: masks ('auto' = the network's segmentation when it has the head, else 'gt';
+    'network'; 'gt' = the dataset's visible masks, an oracle), voting ('bearing' | '3d'),
+    min_pixels (smallest segment; 0 = 0.05 % of the image, at least 10), max_points (voting pixels
+    per object), n_hyp, inlier_cos, bearing_tol (RANSAC), seed (the voting's generator).
+    """
+
+    fuse_stages: int = 3
+    seg_head: bool = True
+    decoder_channels: tuple[int, ...] = DEFAULT_DECODER_CHANNELS
+    head_channels: int = DEFAULT_HEAD_CHANNELS
+    backbone_weights: str = ""
+    depth_mode: str = DEFAULT_DEPTH_MODE
+    w_vec: float = 2.0
+    masks: str = "auto"
+    voting: str = "bearing"
+    min_pixels: int = 0
+    max_points: int = 2000
+    n_hyp: int = 128
+    inlier_cos: float = 0.99
+    bearing_tol: float = 0.02
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.decoder_channels = tuple(int(c) for c in self.decoder_channels)
+        if not 1 <= int(self.fuse_stages) <= 5:
+            raise TdofError(f"hff6dof fuse_stages must be in 1..5, got {self.fuse_stages}")
+        if len(self.decoder_channels) != 6 or min(self.decoder_channels) < 1:
+            raise TdofError(f"hff6dof decoder_channels needs 6 widths >= 1, got {list(self.decoder_channels)}")
+        check_depth_mode(self.depth_mode)
+        if self.masks not in MASKS:
+            raise TdofError(f"hff6dof masks must be one of {', '.join(MASKS)}, got '{self.masks}'")
+        if self.voting not in VOTINGS:
+            raise TdofError(f"hff6dof voting must be one of {', '.join(VOTINGS)}, got '{self.voting}'")
+        if not 0.0 < float(self.inlier_cos) < 1.0:
+            raise TdofError(f"hff6dof inlier_cos must lie in (0, 1), got {self.inlier_cos}")
+        for name in ("head_channels", "max_points", "n_hyp"):
+            if int(getattr(self, name)) < 1:
+                raise TdofError(f"hff6dof {name} must be >= 1, got {getattr(self, name)}")
+        if int(self.min_pixels) < 0 or float(self.w_vec) < 0 or float(self.bearing_tol) <= 0:
+            raise TdofError("hff6dof min_pixels and w_vec must be >= 0 and bearing_tol > 0")
+
+
+def build(cfg: HFF6DoFConfig, meta: MethodMeta) -> HFF6DoF:
+    """The HFF6DoF of ``meta``'s objects (classes = objects + background, ``meta.n_keypoints``)."""
+    net = HFF6DoF(n_classes=meta.n_classes, n_keypoints=meta.n_keypoints, fuse_stages=cfg.fuse_stages,
+                  seg_head=cfg.seg_head, decoder_channels=cfg.decoder_channels, head_channels=cfg.head_channels)
+    if cfg.backbone_weights:
+        net.load_backbone_weights(Path(cfg.backbone_weights))
+    return net
+
+
+class HFF6DoFTransform:
+    """A dataset item -> HFF6DoF inputs (+ targets with ``train``) at ``meta.image_size``:
+    :class:`~tdof20.methods.data.HFFTransform` with the meta's classes (labels become class
+    indices 0..n) and keypoints. Output: rgb, geo, depth (the input depth), K, scene_id, im_id,
+    label (when the item has labels); with ``train``: seg, vec, mask. Picklable."""
+
+    def __init__(self, cfg: HFF6DoFConfig, meta: MethodMeta, train: bool = False):
+        classes = list(meta.obj_ids)
+        self.inner = HFFTransform({o: meta.keypoints[o] for o in classes}, meta.image_size, cfg.depth_mode,
+                                  targets=bool(train), classes=classes)
+
+    def __call__(self, item: Mapping) -> dict:
+        return self.inner(item)
+
+
+def forward(net: HFF6DoF, batch: Mapping) -> dict:
+    """The network alone: ``net(rgb, geo)`` on the network's device (channels-last on CUDA)."""
+    dev = next(net.parameters()).device
+    rgb, geo = batch["rgb"].to(dev, non_blocking=True), batch["geo"].to(dev, non_blocking=True)
+    if dev.type == "cuda":
+        rgb = rgb.contiguous(memory_format=torch.channels_last)
+        geo = geo.contiguous(memory_format=torch.channels_last)
+    return net(rgb, geo)
+
+
+def loss(net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta) -> tuple[torch.Tensor, dict]:
+    """The paper's loss (section 3.6): cross-entropy of the segmentation + w_vec x L1 of the
+    vector field on the object pixels (losses.hff_loss). Parts: loss, seg, vec."""
+    dev = next(net.parameters()).device
+    out = forward(net, batch)
+    seg = out["seg"].float() if out["seg"] is not None else None
+    total, parts = hff_loss(seg, out["vec"].float(), batch["seg"].to(dev), batch["vec"].to(dev),
+                            batch["mask"].to(dev), w_vec=float(cfg.w_vec), return_parts=True)
+    return total, {"loss": float(total.detach()), "seg": float(parts["seg"]), "vec": float(parts["vec"])}
+
+
+def mask_source(cfg: HFF6DoFConfig, net: HFF6DoF) -> str:
+    """'network' or 'gt': where the object pixels come from (cfg.masks, 'auto' resolved)."""
+    if cfg.masks == "auto":
+        return "network" if net.has_seg_head else "gt"
+    if cfg.masks == "network" and not net.has_seg_head:
+        raise TdofError("the network has no segmentation head: predict with masks = 'gt' (ground-truth masks)")
+    return cfg.masks
+
+
+def needs_labels(cfg: HFF6DoFConfig, net: HFF6DoF) -> bool:
+    """Whether prediction reads the dataset's labels (masks 'gt', or 'auto' without a segmentation head)."""
+    return mask_source(cfg, net) == "gt"
+
+
+@torch.no_grad()
+def predict_poses(net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta
+                  ) -> list[tuple[int, int, float, np.ndarray, np.ndarray]]:
+    """Rows (b, obj_id, score, R (3,3), t (3,) mm) of a batch: the network, the object pixels (its
+    segmentation's argmax, or the batch's ground-truth ``label`` with masks 'gt'), then
+    :func:`tdof20.methods.predict.recover_poses` (voting + fitting; score = mean inlier fraction)."""
+    from tdof20.methods.predict import default_min_pixels, recover_poses
+
+    source = mask_source(cfg, net)
+    if source == "gt" and "label" not in batch:
+        raise TdofError("predicting with ground-truth masks needs the labels in the batch")
+    was = net.training
+    net.eval()
+    try:
+        out = forward(net, batch)
+    finally:
+        net.train(was)
+    dev = out["vec"].device
+    if source == "network":
+        conf, classes = torch.softmax(out["seg"].float(), dim=1).max(dim=1)
+    else:
+        classes, conf = batch["label"].to(dev).long(), None
+    kp_table = torch.as_tensor(meta.keypoint_array(), dtype=torch.float32, device=dev)
+    min_pixels = int(cfg.min_pixels) or default_min_pixels(meta.image_size)
+    gen = torch.Generator(device=dev).manual_seed(int(cfg.seed))
+    res = recover_poses(classes, out["vec"].float(), batch["depth"].to(dev), batch["K"].to(dev), kp_table,
+                        min_pixels, max_points=int(cfg.max_points), n_hyp=int(cfg.n_hyp),
+                        inlier_cos=float(cfg.inlier_cos), generator=gen, confidence=conf, voting=cfg.voting,
+                        bearing_tol=float(cfg.bearing_tol))
+    return [(b, meta.obj_of(r["obj_id"]), float(r["score"]), np.asarray(r["R"], np.float64),
+             np.asarray(r["t"], np.float64)) for b, found in enumerate(res) for r in found]
+
+
+# --------------------------------------------------------------------------------------------
+# runs
+
+
+def config_from_run(config: Mapping, path: str | Path | None = None) -> tuple[HFF6DoFConfig, MethodMeta]:
+    """(cfg, meta) of an HFF6DoF run from its config.json, also one written before the interface:
+    the network options from "network", the input depth from "depth_mode", the objects from
+    "classes" (a run without them: ids 1..n_classes-1, class = obj_id), their keypoints from
+    "keypoints", the input size from "image_size"; a recorded "method_config" / "meta" wins, except
+    that the "network" table, when there is one, decides the architecture.
+    Such an old run records no diameters, symmetries or surface samples (prediction needs none):
+    the meta then carries the keypoints' extent as diameter, no symmetry and the keypoints as
+    samples."""
+    from tdof20.config import config_from_data
+
+    try:
+        if "method_config" in config:
+            cfg = config_from_data(HFF6DoFConfig, dict(config["method_config"]), path or "")
+        else:
+            cfg = HFF6DoFConfig(depth_mode=str(config["depth_mode"]))
+        if "network" in config:  # the network table describes the architecture (every HFF6DoF run has one)
+            net = config["network"]
+            cfg = dataclasses.replace(cfg, fuse_stages=int(net["fuse_stages"]), seg_head=bool(net["seg_head"]),
+                                      decoder_channels=tuple(int(c) for c in net["decoder_channels"]),
+                                      head_channels=int(net["head_channels"]))
+            if int(net.get("geo_channels", 6)) != 6:
+                raise TdofError(f"its network has {net['geo_channels']} geometry channels; HFF6DoF's input has 6",
+                                path)
+        if "meta" in config:
+            meta = MethodMeta.from_json(config["meta"])
+        else:
+            classes = config.get("classes")
+            classes = identity_classes(int(config["network"]["n_classes"])) if classes is None else \
+                [int(c) for c in classes]
+            kps = keypoints_from_json(config["keypoints"])
+            missing = [o for o in classes if o not in kps]
+            if missing:
+                raise TdofError(f"its keypoints lack objects {missing}", path)
+            kps = {o: kps[o] for o in classes}
+            meta = MethodMeta(obj_ids=tuple(classes), keypoints=kps,
+                              diameters={o: float(2 * np.linalg.norm(k - k[0], axis=1).max()) for o, k in kps.items()},
+                              symmetric={o: False for o in classes}, model_points=kps,
+                              image_size=tuple(int(v) for v in config["image_size"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise TdofError(f"not a readable HFF6DoF run config ({type(e).__name__}: {e})", path) from None
+    except TdofError as e:
+        if e.path is None and path is not None:
+            raise TdofError(str(e), path) from None
+        raise
+    n = config.get("network", {}).get("n_classes") if isinstance(config.get("network"), Mapping) else None
+    if n is not None and int(n) != meta.n_classes:
+        raise TdofError(f"its network has {n} classes but its objects make {meta.n_classes}", path)
+    return cfg, meta
+
+
+__all__: Sequence[str] = ("HFF6DoFConfig", "HFF6DoFTransform", "build", "config_from_run", "forward", "loss",
+                          "mask_source", "needs_labels", "predict_poses")
