@@ -209,6 +209,18 @@ def test_score_command_names_the_bop_objects(bop, tmp_path, capsys):
     rc, err, _ = cli(capsys, "benchmark", "score", tmp_path / "gt.csv", "--dataset", bop["root"], "--split",
                      "train_pbr")
     assert rc == 2 and "holds the targets of the split folder test/" in err
+    # a results file made by `tdof20 predict` has its sidecar: the scorer says how it was made, and
+    # marks poses recovered on ground-truth masks in its output, its JSON and report.md
+    (tmp_path / "gt_info.json").write_text(json.dumps({"method": "pvnet", "input": "rgb", "depth_mode": "none",
+                                                       "masks": "gt", "method_config": {"vote_max_pixels": 100}}))
+    rc, _, out = cli(capsys, "benchmark", "score", tmp_path / "gt.csv", "--dataset", bop["root"], "--split", "test",
+                     "--metrics", "add,proj", "--json", tmp_path / "s.json", "--plots", tmp_path / "plots")
+    assert rc == 0
+    text = " ".join(out.split())  # the console wraps long lines
+    assert 'gt: method pvnet (rgb), depth none, masks gt ORACLE MASKS' in text and '"vote_max_pixels": 100' in text
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["run"]["oracle_masks"] is True and summary["run"]["method"] == "pvnet"
+    assert "ORACLE MASKS" in (tmp_path / "plots" / "report.md").read_text()
 
 
 # ------------------------------------------------------------------------------ --layout bop

@@ -41,6 +41,7 @@ interval straddles 100 mm, or whose ADD-S was computed exactly anyway, use the e
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time as _time
@@ -1041,6 +1042,34 @@ __all__ = ["ADD_THRESHOLD", "PROJ_THRESHOLD", "AUC_MAX", "KEYS", "BOP_KEYS", "ME
            "resolve_metrics", "vsd_unavailable", "evaluate", "score"]
 
 
+def run_info(results_csv: str | Path) -> dict | None:
+    """What ``tdof20 predict`` wrote beside a results file (``<stem>_info.json``: method, its config,
+    input, depth mode, masks, timings), or None for results from elsewhere. ``oracle_masks`` is
+    added: True when the poses were recovered on ground-truth masks (``masks == "gt"``), which
+    every score made from them must say."""
+    from tdof20.formats import read_json
+
+    p = Path(results_csv)
+    side = p.with_name(p.stem + "_info.json")
+    if not side.is_file():
+        return None
+    info = read_json(side)
+    if not isinstance(info, dict):
+        raise TdofError(f"must hold a JSON object, got {type(info).__name__}", side)
+    keep = ("method", "input", "depth_mode", "masks", "method_config", "run", "split")
+    out = {k: info[k] for k in keep if k in info}
+    out["oracle_masks"] = info.get("masks") == "gt"
+    return out
+
+
+def run_line(name: str, info: dict) -> str:
+    """One line naming how a results file was made (for the scorer's output)."""
+    cfg = json.dumps(info.get("method_config", {}), sort_keys=True)
+    oracle = "  ORACLE MASKS (ground-truth segmentation)" if info.get("oracle_masks") else ""
+    return (f"{name}: method {info.get('method', '?')} ({info.get('input', '?')}), depth {info.get('depth_mode', '?')}, "
+            f"masks {info.get('masks', '-')}{oracle}, config {cfg}")
+
+
 def score_command(results: list[Path], dataset: Path, split: str | None, targets: Path | None,
                   json_out: Path | None, plots: Path | None, metrics: str | None = None) -> str:
     """``tdof20 benchmark score RESULTS.csv... --dataset ROOT (--split S | --targets F) [--json OUT]
@@ -1066,6 +1095,10 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
     head = f"dataset {ds.root}  targets {tpath.name} ({n_targets} target instances)"
     parts = [head, "", report.report_text(evals)]
     notes = []
+    infos = [run_info(r) for r in results]
+    for name, info in zip(names, infos):
+        if info is not None:
+            notes.append(run_line(name, info))
     for name, ev in zip(names, evals):
         for w in ev.warnings:
             notes.append(f"{'note' if w.startswith('VSD not computed') else 'warning'}: {name}: {w}")
@@ -1074,15 +1107,17 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
         notes.append(f"{name}: {ev.n_rows} rows scored in {t['total']:.2f} s (read {t['read']:.2f} s, "
                      f"metrics {t['metrics']:.2f} s{bop})")
     if json_out is not None:
-        content = evals[0].summary() if len(evals) == 1 else {n: e.summary() for n, e in zip(names, evals)}
+        summaries = [dict(e.summary(), **({"run": i} if i is not None else {})) for e, i in zip(evals, infos)]
+        content = summaries[0] if len(evals) == 1 else dict(zip(names, summaries))
         write_json(json_out, content)
         notes.append(f"wrote {json_out}")
     if plots is not None:
         paths = report.write_plots(evals, plots)
         md = Path(plots) / "report.md"
-        atomic_write_bytes(md, (f"{head}\n\n" + report.report_markdown(evals)).encode())
+        runs = "".join(f"- {run_line(n, i)}\n" for n, i in zip(names, infos) if i is not None)
+        atomic_write_bytes(md, (f"{head}\n\n" + (runs + "\n" if runs else "") + report.report_markdown(evals)).encode())
         notes.append("wrote " + ", ".join(str(p) for p in paths + [md]))
     return "\n".join(parts + [""] + notes)
 
 
-__all__.append("score_command")
+__all__ += ["score_command", "run_info", "run_line"]
