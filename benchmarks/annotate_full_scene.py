@@ -11,8 +11,10 @@ with every stage forced. Printed per stage: wall seconds and the CPU seconds of 
 every worker process it started (a poller sums the CPU times of the process tree every 0.1 s,
 so workers that end between two polls lose at most that much), the registration's own per-arm
 figures, the label stage's frames/s, and the evaluation's medians against the simulator's truth
-(so a fast wrong answer does not pass). The load average of the machine is printed beside the
-times: the wall times are only comparable on an idle machine, the CPU times are.
+(so a fast wrong answer does not pass), and the peak memory (RSS) of the process tree, of this
+process and of its largest worker per stage (polled as the CPU). The load average of the machine
+is printed beside the times: the wall times are only comparable on an idle machine, the CPU
+times are.
 The capture itself takes ~5 min on 2 cores and ~3 GB of disk.
 """
 
@@ -32,7 +34,8 @@ sys.path.insert(0, str(ROOT))
 
 class TreeCPU:
     """CPU seconds (user + system) of this process and all its descendants, polled in a thread:
-    the last seen total of every process (also those that ended) is kept."""
+    the last seen total of every process (also those that ended) is kept; also the peak resident
+    memory (RSS) seen of each process and of the whole tree at once."""
 
     def __init__(self, interval: float = 0.1):
         import psutil
@@ -40,6 +43,8 @@ class TreeCPU:
         self.psutil, self.interval = psutil, interval
         self.me = psutil.Process()
         self.seen: dict[tuple[int, float], float] = {}
+        self.peak_rss: dict[tuple[int, float], int] = {}
+        self.peak_tree_rss = 0
         self._stop = threading.Event()
         self._poll()
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -47,14 +52,29 @@ class TreeCPU:
 
     def _poll(self) -> None:
         ps = self.psutil
+        tree = 0
         for p in [self.me] + self.me.children(recursive=True):
             try:
                 with p.oneshot():
                     t = p.cpu_times()
+                    rss = p.memory_info().rss
                     key = (p.pid, p.create_time())
                 self.seen[key] = t.user + t.system
+                self.peak_rss[key] = max(self.peak_rss.get(key, 0), rss)
+                tree += rss
             except (ps.NoSuchProcess, ps.AccessDenied, ps.ZombieProcess):
                 pass
+        self.peak_tree_rss = max(self.peak_tree_rss, tree)
+
+    def reset_peaks(self) -> None:
+        self.peak_rss.clear()
+        self.peak_tree_rss = 0
+
+    def peaks_mib(self) -> tuple[float, float, float]:
+        """(peak RSS of the tree, of this process, of the largest worker), MiB, since the last reset."""
+        me = max((v for (pid, _), v in self.peak_rss.items() if pid == self.me.pid), default=0)
+        worker = max((v for (pid, _), v in self.peak_rss.items() if pid != self.me.pid), default=0)
+        return self.peak_tree_rss / 2**20, me / 2**20, worker / 2**20
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
@@ -105,9 +125,11 @@ def main() -> None:
     summary = None
     for st in chosen:
         t, c = time.perf_counter(), cpu.total()
+        cpu.reset_peaks()
         summary = annotate(raw, out, models, stages=st, cfg=cfg, force=True, progress=False)
-        rows.append((st, time.perf_counter() - t, cpu.total() - c, os.getloadavg()[0]))
-        print(f"  {st:12s} wall {rows[-1][1]:7.1f} s   cpu {rows[-1][2]:7.1f} s   (load {rows[-1][3]:.2f})", flush=True)
+        rows.append((st, time.perf_counter() - t, cpu.total() - c, os.getloadavg()[0], cpu.peaks_mib()))
+        print(f"  {st:12s} wall {rows[-1][1]:7.1f} s   cpu {rows[-1][2]:7.1f} s   (load {rows[-1][3]:.2f})   "
+              "peak RSS: tree {:.0f} MiB, main {:.0f} MiB, largest worker {:.0f} MiB".format(*rows[-1][4]), flush=True)
     wall, cpus = time.perf_counter() - t_all, cpu.total() - c_all
     cpu.stop()
     print(f"  {'all':12s} wall {wall:7.1f} s = {int(wall // 60)} min {wall % 60:.0f} s   cpu {cpus:7.1f} s   "
@@ -127,7 +149,9 @@ def main() -> None:
         print("  against the truth (medians): " + ", ".join(f"{k} {a[k]['median']}" for k in keys))
     if summary is not None and summary.get("registration"):
         print(f"  flagged frames: {len(summary['registration'].get('flagged', []))}")
-    print(json.dumps({"stages": {r[0]: {"wall_s": round(r[1], 2), "cpu_s": round(r[2], 2)} for r in rows},
+    print(json.dumps({"stages": {r[0]: {"wall_s": round(r[1], 2), "cpu_s": round(r[2], 2),
+                                        "peak_rss_mib": {"tree": round(r[4][0]), "main": round(r[4][1]),
+                                                         "worker": round(r[4][2])}} for r in rows},
                       "wall_s": round(wall, 2), "cpu_s": round(cpus, 2), "all_stages": list(STAGES)}))
 
 

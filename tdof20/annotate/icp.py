@@ -44,55 +44,54 @@ def point_cloud(points: np.ndarray) -> "o3d.geometry.PointCloud":
 
 
 class Pyramid:
-    """A cloud downsampled at each ICP scale with normals (estimated once, on the ``normal_voxel_mm``
-    grid, handed to the finest points and averaged into the coarser ones, oriented towards
-    ``viewpoint``), plus a random subsample of each level (at most ``max_source_points``) used
-    when the cloud is the ICP source. ``points``: (N,3) raw points, or an open3d cloud already
-    downsampled at the finest scale (``voxel_sizes_mm[-1]``)."""
+    """A cloud at each ICP scale: per level (points (N,3), unit normals (N,3)) as float32 arrays
+    (the depth's own precision; half the memory of open3d's float64 clouds), or None for a level
+    a registration pass does not use. Normals are estimated once, on the ``normal_voxel_mm`` grid,
+    handed to the finest points and averaged into the coarser ones, oriented towards ``viewpoint``.
+    A random subsample of each level (at most ``max_source_points``) is used when the cloud is the
+    ICP source; a level's nearest-neighbour tree is built when the cloud is first a target and
+    kept until :meth:`release` (one arm's 400 trees would hold ~1 GB).
+    ``n_fine``: the number of points of the finest level, also when that level is not kept."""
 
-    def __init__(self, points, cfg: RegistrationConfig, viewpoint: np.ndarray | None = None,
-                 levels: list | None = None):
+    def __init__(self, levels: list, cfg: RegistrationConfig, n_fine: int | None = None):
         self.cfg = cfg
-        if levels is not None:
-            self.levels = levels
+        self.levels = levels
+        self.n_fine = int(len(levels[-1][0]) if n_fine is None else n_fine)
+        self._src: dict[int, np.ndarray] = {}
+        self._trees: dict[int, tuple] = {}
+
+    @classmethod
+    def from_fine(cls, fine: "o3d.geometry.PointCloud", cfg: RegistrationConfig,
+                  viewpoint: np.ndarray | None = None, keep: set[int] | None = None) -> "Pyramid":
+        """From an open3d cloud downsampled at the finest scale (``voxel_sizes_mm[-1]``, no normals
+        yet): the levels in ``keep`` (default all) with normals."""
+        n_lv = len(cfg.voxel_sizes_mm)
+        keep = set(range(n_lv)) if keep is None else set(keep)
+        if cfg.normal_voxel_mm:
+            # each fine point takes the normal of its cell of the sparser grid (4x fewer points
+            # and neighbours for the normal estimation)
+            centres, cell = voxel_cells(np.asarray(fine.points), cfg.normal_voxel_mm)
+            sparse = point_cloud(centres)
         else:
-            fine = (points if isinstance(points, o3d.geometry.PointCloud)
-                    else point_cloud(points).voxel_down_sample(cfg.voxel_sizes_mm[-1]))
-            if cfg.normal_voxel_mm:
-                # each fine point takes the normal of its cell of the sparser grid (4x fewer points
-                # and neighbours for the normal estimation)
-                centres, cell = voxel_cells(np.asarray(fine.points), cfg.normal_voxel_mm)
-                sparse = point_cloud(centres)
+            sparse, cell = fine, None
+        sparse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_mm,
+                                                                     max_nn=cfg.normal_max_nn))
+        if viewpoint is not None:
+            sparse.orient_normals_towards_camera_location(viewpoint)
+        if cell is not None:
+            fine.normals = o3d.utility.Vector3dVector(np.asarray(sparse.normals)[cell])
+        levels: list = []
+        for i, v in enumerate(cfg.voxel_sizes_mm[:-1]):
+            if i not in keep:
+                levels.append(None)
+            elif sparse is not fine and v == cfg.normal_voxel_mm:
+                levels.append(_arrays(sparse))  # the same voxel grid, with the normals estimated on it
             else:
-                sparse, cell = fine, None
-            sparse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_mm,
-                                                                         max_nn=cfg.normal_max_nn))
-            if viewpoint is not None:
-                sparse.orient_normals_towards_camera_location(viewpoint)
-            if cell is not None:
-                fine.normals = o3d.utility.Vector3dVector(np.asarray(sparse.normals)[cell])
-            self.levels = []
-            for v in cfg.voxel_sizes_mm[:-1]:
-                if sparse is not fine and v == cfg.normal_voxel_mm:
-                    self.levels.append(sparse)  # the same voxel grid, with the normals estimated on it
-                    continue
                 d = fine.voxel_down_sample(v)
                 d.normalize_normals()
-                self.levels.append(d)
-            self.levels.append(fine)
-        self._src: dict[int, "o3d.geometry.PointCloud"] = {}
-
-    def source(self, i: int) -> "o3d.geometry.PointCloud":
-        if i not in self._src:
-            lv = self.levels[i]
-            n = len(lv.points)
-            m = self.cfg.max_source_points
-            if m and n > m:
-                idx = np.random.default_rng(n).choice(n, m, replace=False)
-                self._src[i] = lv.select_by_index(np.sort(idx).tolist())
-            else:
-                self._src[i] = lv
-        return self._src[i]
+                levels.append(_arrays(d))
+        levels.append(_arrays(fine) if n_lv - 1 in keep else None)
+        return cls(levels, cfg, n_fine=len(fine.points))
 
     @classmethod
     def from_cloud(cls, cloud: "o3d.geometry.PointCloud", cfg: RegistrationConfig) -> "Pyramid":
@@ -101,31 +100,81 @@ class Pyramid:
         for v in cfg.voxel_sizes_mm:
             d = cloud.voxel_down_sample(v)
             d.normalize_normals()
-            levels.append(d)
-        return cls(None, cfg, levels=levels)
+            levels.append(_arrays(d))
+        return cls(levels, cfg)
 
-    def cropped(self, n: np.ndarray, p: np.ndarray, radius: float) -> "Pyramid":
-        """The part inside the turntable volume (same normals)."""
+    def points(self, i: int) -> np.ndarray:
+        return self.levels[i][0]
+
+    def source(self, i: int) -> np.ndarray:
+        """The ICP-source points of level i (a seeded subsample of at most ``max_source_points``)."""
+        if i not in self._src:
+            P = self.levels[i][0]
+            n, m = len(P), self.cfg.max_source_points
+            if m and n > m:
+                self._src[i] = P[np.sort(np.random.default_rng(n).choice(n, m, replace=False))]
+            else:
+                self._src[i] = P
+        return self._src[i]
+
+    def cloud(self, i: int, source: bool = False) -> "o3d.geometry.PointCloud":
+        """Level i as an open3d cloud (with normals; ``source``: the ICP-source subsample, points only)."""
+        if source:
+            return point_cloud(self.source(i))
+        P, N = self.levels[i]
+        pc = point_cloud(P)
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(N, np.float64))
+        return pc
+
+    def cropped(self, n: np.ndarray, p: np.ndarray, radius: float, levels: list[int] | None = None) -> "Pyramid":
+        """The part inside the turntable volume (same normals), of the kept ``levels`` (default all
+        kept); the count of the finest level's points inside is kept even when that level is not."""
+        cfg = self.cfg
+        n64, p64 = np.asarray(n, np.float64), np.asarray(p, np.float64)
+
+        def inside(P: np.ndarray) -> np.ndarray:
+            h, r = height_radius(P, n64, p64)
+            return (h >= -cfg.crop_below_mm) & (h <= cfg.crop_height_mm) & (r <= radius)
+        want = set(range(len(self.levels))) if levels is None else set(levels)
         out = []
-        for lv in self.levels:
-            h, r = height_radius(np.asarray(lv.points), n, p)
-            keep = (h >= -self.cfg.crop_below_mm) & (h <= self.cfg.crop_height_mm) & (r <= radius)
-            out.append(lv.select_by_index(np.flatnonzero(keep).tolist()))
-        return Pyramid(None, self.cfg, levels=out)
+        for i, lv in enumerate(self.levels):
+            if lv is None or i not in want:
+                out.append(None)
+            else:
+                m = inside(lv[0])
+                out.append((lv[0][m], lv[1][m]))
+        fine = out[-1]
+        if fine is not None:
+            n_fine = len(fine[0])
+        elif self.levels[-1] is not None:
+            n_fine = int(inside(self.levels[-1][0]).sum())
+        else:
+            n_fine = self.n_fine
+        return Pyramid(out, cfg, n_fine=n_fine)
 
     def tree(self, i: int):
-        """(scipy cKDTree, points (N,3), unit normals (N,3)) of level i, built once."""
-        if not hasattr(self, "_trees"):
-            self._trees = {}
+        """(scipy cKDTree, points (N,3), unit normals (N,3)) of level i, built once (until :meth:`release`)."""
         if i not in self._trees:
             from scipy.spatial import cKDTree
-            lv = self.levels[i]
-            P = np.asarray(lv.points)
-            self._trees[i] = (cKDTree(P), P, np.asarray(lv.normals))
+            P, N = self.levels[i]
+            # unbalanced, uncompacted: half the build time, the same (exact) nearest neighbours
+            self._trees[i] = (cKDTree(P, balanced_tree=False, compact_nodes=False), P, N)
         return self._trees[i]
 
+    def release(self) -> None:
+        """Drop the nearest-neighbour trees (rebuilt when needed again)."""
+        self._trees.clear()
+
+    def nbytes(self) -> int:
+        return sum(a.nbytes for lv in self.levels if lv is not None for a in lv)
+
     def __len__(self) -> int:
-        return len(self.levels[-1].points)
+        return self.n_fine
+
+
+def _arrays(pc: "o3d.geometry.PointCloud") -> tuple[np.ndarray, np.ndarray]:
+    """(points, normals) of an open3d cloud as float32 arrays."""
+    return np.asarray(pc.points, np.float32), np.asarray(pc.normals, np.float32)
 
 
 def voxel_cells(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -157,19 +206,45 @@ def icp(src: Pyramid, tgt: Pyramid, init: np.ndarray, cfg: RegistrationConfig,
         v = cfg.voxel_sizes_mm[i]
         it = cfg.icp_iterations[min(i, len(cfg.icp_iterations) - 1)]
         dist = cfg.icp_dist_factor * v
-        s, t = src.source(i), tgt.levels[i]
-        if len(s.points) < 10 or len(t.points) < 10:
+        if len(src.source(i)) < 10 or len(tgt.points(i)) < 10:
             continue
-        res = REG.registration_icp(s, t, dist, T, est, REG.ICPConvergenceCriteria(1e-6, 1e-6, it))
+        res = REG.registration_icp(src.cloud(i, source=True), tgt.cloud(i), dist, T, est,
+                                   REG.ICPConvergenceCriteria(1e-6, 1e-6, it))
         T = res.transformation
     dist = cfg.icp_dist_factor * cfg.voxel_sizes_mm[n - 1]
-    s, t = src.source(n - 1), tgt.levels[n - 1]
+    s, t = src.cloud(n - 1, source=True), tgt.cloud(n - 1)
     if res is None or (final_dist is not None and final_dist != dist):
         dist = dist if final_dist is None else final_dist
         res = REG.evaluate_registration(s, t, dist, T)
     info = (REG.get_information_matrix_from_point_clouds(s, t, dist, T) if information and len(s.points) >= 10
             else np.eye(6))
     return np.asarray(T), float(res.fitness), float(res.inlier_rmse), np.asarray(info)
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues; the series near 0)."""
+    th2 = float(w @ w)
+    K = _skew(w)
+    if th2 < 1e-12:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * (K @ K)
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of the rotation matrix ``R`` (angles below pi - 0.1: the prior's deviations)."""
+    s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])   # sin(th) * axis
+    sn = float(np.linalg.norm(s))
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    th = math.atan2(sn, c)
+    if th > math.pi - 0.1:   # near a half turn the skew part loses the axis
+        from scipy.spatial.transform import Rotation
+        return Rotation.from_matrix(R).as_rotvec()
+    return s * (th / sn if sn > 1e-12 else 1.0)
 
 
 def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray, cfg: RegistrationConfig,
@@ -181,9 +256,10 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
     is the deviation from ``prior`` (rotation vector, and displacement of ``centre``, the table
     centre): directions the geometry pins (most of them) follow the data, directions it leaves
     free (a rotationally symmetric object turning about itself) stay at the prior instead of
-    drifting. Returns (T, fitness, rmse, information (6,6)) like open3d's ICP."""
-    from scipy.spatial.transform import Rotation
+    drifting. Returns (T, fitness, rmse, information (6,6)) like open3d's ICP.
 
+    Closed-form maths in the loop (Rodrigues' formula for the step, the deviation's rotation
+    vector from the skew part) instead of scipy's Rotation objects."""
     T = np.asarray(prior, float).copy()
     T0inv = invert(prior)
     c = np.asarray(centre, float)
@@ -191,30 +267,35 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
     sigma_mm = cfg.prior_sigma_mm if sigma_mm is None else sigma_mm
     lam = np.r_[np.full(3, (cfg.prior_sigma_r_mm / math.radians(sigma_deg)) ** 2),
                 np.full(3, (cfg.prior_sigma_r_mm / sigma_mm) ** 2)]
+    L = np.diag(lam)
     levels = list(range(len(cfg.voxel_sizes_mm))) if levels is None else list(levels)
     for i in levels:
         dist = cfg.icp_dist_factor * cfg.voxel_sizes_mm[i]
-        S = np.asarray(src.source(i).points)
-        tree, Q, N = tgt.tree(i)
-        if len(S) < 10 or len(Q) < 10:
+        S = src.source(i)
+        if len(S) < 10 or len(tgt.points(i)) < 10:
             continue
+        tree, Q, N = tgt.tree(i)
         it = cfg.icp_iterations[min(i, len(cfg.icp_iterations) - 1)]
         for _ in range(it):
             X = S @ T[:3, :3].T + T[:3, 3]
             d, idx = tree.query(X, distance_upper_bound=dist)  # <= max_source_points: threads cost more
-            ok = np.isfinite(d)
-            if ok.sum() < 10:
+            ok = d < np.inf
+            if np.count_nonzero(ok) < 10:
                 break
-            Xo, q, nn = X[ok], Q[idx[ok]], N[idx[ok]]
+            Xo, j = X[ok], idx[ok]
+            q, nn = Q[j], N[j]
             r = np.einsum("ij,ij->i", Xo - q, nn)
-            J = np.concatenate([np.cross(Xo - c, nn), nn], axis=1)
+            J = np.empty((len(r), 6))
+            a = Xo - c
+            J[:, 0] = a[:, 1] * nn[:, 2] - a[:, 2] * nn[:, 1]   # (X - c) x n
+            J[:, 1] = a[:, 2] * nn[:, 0] - a[:, 0] * nn[:, 2]
+            J[:, 2] = a[:, 0] * nn[:, 1] - a[:, 1] * nn[:, 0]
+            J[:, 3:] = nn
             D = T @ T0inv                                   # deviation from the prior (target frame)
-            dev = np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, :3] @ c + D[:3, 3] - c]
-            H = J.T @ J + np.diag(lam)
-            g = J.T @ r + lam * dev
-            xi = -np.linalg.solve(H, g)
+            dev = np.r_[_log_so3(D[:3, :3]), D[:3, :3] @ c + D[:3, 3] - c]
+            xi = -np.linalg.solve(J.T @ J + L, J.T @ r + lam * dev)
             w, v = xi[:3], xi[3:]
-            Rw = Rotation.from_rotvec(w).as_matrix()
+            Rw = _exp_so3(w)
             step = np.eye(4)
             step[:3, :3] = Rw
             step[:3, 3] = c - Rw @ c + v
@@ -223,14 +304,14 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
                 break
     n = levels[-1]
     dist = cfg.icp_dist_factor * cfg.voxel_sizes_mm[n]
-    S = np.asarray(src.source(n).points)
+    S = src.source(n)
     tree, Q, N = tgt.tree(n)
     X = S @ T[:3, :3].T + T[:3, 3]
     d, idx = tree.query(X, distance_upper_bound=dist)
     ok = np.isfinite(d)
     fit = float(ok.mean()) if len(S) else 0.0
     rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
-    info = _information(Q[idx[ok]]) if information and len(S) >= 10 else np.eye(6)
+    info = _information(Q[idx[ok]].astype(np.float64)) if information and len(S) >= 10 else np.eye(6)
     return T, fit, rmse, info
 
 
@@ -280,7 +361,11 @@ def pose_graph_pass(pyr: dict[int, Pyramid], cfg: RegistrationConfig, arm: int, 
     stats: dict[int, list[tuple[float, float, bool]]] = {k: [] for k in steps}
     c = np.append(axis_point, 1.0)
     edges = []
-    for i, j in pairs:
+    target = None
+    for i, j in pairs:                                # sorted: each target's edges come together
+        if target is not None and target != i:
+            pyr[target].release()                     # its trees are not needed again
+        target = i
         init = invert(prior[i]) @ prior[j]            # cam(j) -> cam(i)
         if cfg.prior_weighted_icp:
             T, fit, rmse, info = icp_prior(pyr[j], pyr[i], init, axis_point, cfg, levels=levels)
@@ -294,6 +379,8 @@ def pose_graph_pass(pyr: dict[int, Pyramid], cfg: RegistrationConfig, arm: int, 
         stats[j].append((fit, rmse, ok))
         if ok:
             edges.append((i, j, T, info))
+    if target is not None:
+        pyr[target].release()
     # the pose graph over the frames connected to the first one (open3d refuses a disconnected graph)
     if not steps:
         raise TdofError(f"arm {arm}: no frame keeps enough depth points inside the turntable volume "

@@ -276,8 +276,10 @@ def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps
     """The turn of the moving part between consecutive sampled frames of an arm position:
     [{k0, k1, nominal_deg, theta_deg, centre, score}] with theta measured near the nominal turn
     ``sign * (k1 - k0) * step_deg``, for the pairs whose nominal turn is far enough from 0 and
-    180 deg to pin the centre. ``check``: every pair, also measured over the whole turn and near
-    the reversed turn (``free``, ``reversed``: (theta, score)), for the direction and step checks.
+    180 deg to pin the centre. ``check``: also every pair whose moving part's centroid moves,
+    measured over the whole turn and near the reversed turn too (``free``, ``reversed``: (theta,
+    score)), for the direction and step checks; ``for_axis`` says which pairs the plain call
+    returns (the same numbers: the registration reuses the check's measurement).
     Also returns the moving points of all sampled frames (N,3): where the objects stand."""
     cam = session.info.camera
     sd = session.info.step_deg
@@ -294,14 +296,21 @@ def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps
     for i in range(len(steps) - 1):
         P, Q = clouds[i], clouds[i + 1]
         nominal = (steps[i + 1] - steps[i]) * sd
-        if len(P) < 100 or len(Q) < 100 or (not check and abs(math.sin(math.radians(nominal) / 2)) < 0.15):
+        if len(P) < 100 or len(Q) < 100:
             continue
-        if check and np.linalg.norm((P.mean(0) - Q.mean(0)) - ((P.mean(0) - Q.mean(0)) @ n) * n) < 15.0:
-            continue   # the moving part's centroid hardly moved (a round object near the axis): no turn to see
+        for_axis = abs(math.sin(math.radians(nominal) / 2)) >= 0.15
+        # the moving part's centroid hardly moved (a round object near the axis): no turn to see
+        moved = np.linalg.norm((P.mean(0) - Q.mean(0)) - ((P.mean(0) - Q.mean(0)) @ n) * n) >= 15.0
+        if not (for_axis or (check and moved)):
+            continue
         theta, centre, sc, _ = _turn_between(P, Q, n, foot, sign * nominal)
         e = {"k0": steps[i], "k1": steps[i + 1], "nominal_deg": nominal, "theta_deg": theta, "centre": centre,
-             "score": sc}
-        if check:
+             "score": sc, "for_axis": for_axis}
+        if not check:
+            out.append(e)
+            continue
+        e["moved"] = bool(moved)
+        if moved:
             th, _, sc_free, pinned = _turn_between(P, Q, n, foot, None, max_radius_mm=cfg.max_crop_radius_mm)
             e["free"], e["pinned"] = (th, sc_free), pinned
             e["reversed"] = _turn_between(P, Q, n, foot, -sign * nominal)[0::2]
@@ -309,7 +318,8 @@ def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps
     return out, (np.concatenate(clouds) if clouds else np.zeros((0, 3)))
 
 
-def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, recorded: bool) -> float:
+def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, recorded: bool,
+                    measured: dict | None = None) -> float:
     """The turning direction and step angle the opaque depth shows, against session.json: returns
     the sign to use (+1 counter-clockwise about the table normal towards the camera, -1
     clockwise). Per pair of sampled frames of the first arm position whose moving part pins the
@@ -322,7 +332,12 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
     session.json is taken from the data; a recorded one that the data contradicts, or a step
     angle the data does not show, is a one-line TdofError naming session.json. Silent (keeps
     ``sign``) when the moving part is too small or too symmetric to tell (one round cup on the
-    axis turns without changing the depth)."""
+    axis turns without changing the depth).
+
+    ``measured`` (a dict, filled): per arm position checked, what the registration of that arm
+    would measure again — {"steps", "n", "d", "sign", "pairs" (those ``sampled_motion`` returns
+    without ``check``), "moving"}; :func:`~tdof20.annotate.registration.register_session` hands
+    it to the arm's registration."""
     info = session.info
     src = session.path / "session.json"
     votes: list[tuple[str, int, dict]] = []
@@ -335,10 +350,14 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
         prior_up = info.T_base_cam(arm)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
         try:
             n, d, _ = table_plane(session, cfg, arm, sample, prior_up)
-            pairs = [p for p in sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)[0]
-                     if p["free"][1] >= 0.45 and p["pinned"]]
+            motion, moving = sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)
         except TdofError:
             continue
+        if measured is not None:
+            measured[arm] = {"steps": list(sample), "n": n, "d": d, "sign": sign, "moving": moving,
+                             "pairs": [{k: v for k, v in p.items() if k not in ("moved", "free", "pinned", "reversed")}
+                                       for p in motion if p["for_axis"]]}
+        pairs = [p for p in motion if p["moved"] and p["free"][1] >= 0.45 and p["pinned"]]
         for p in pairs:
             best = max(p["score"], p["reversed"][1], p["free"][1])
             if p["score"] >= 0.85 * best or p["score"] >= 0.6:
