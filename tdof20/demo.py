@@ -18,8 +18,9 @@ score      ADD(S), 2D projection, AUC -> ``OUT/report/``
 and ``OUT/report.md``: the annotation's accuracy beside the pose scores, the stage times, the
 contact sheet, the loss curves. The defaults take about 1.5 minutes on 2 idle CPU cores (7 on a busy one).
 
-The defaults — ``single/12`` (the vase: trained and scored on) and ``multi/08`` (annotated with the
-CAD models and matched to its clusters; the TDoF20-hard test part), 4 arm positions × 16 steps
+The defaults — ``single/juice_cup_340`` (a straight tumbler: trained and scored on) and ``multi/08``
+(a goblet, a tapered juice tumbler, a tall mug and an ice-cream cup, annotated with the CAD models and
+matched to its clusters; the TDoF20-hard test part), 4 arm positions × 16 steps
 of 5° at 320×240, 5 epochs at 60×80 — are what a few minutes of CPU training can learn from: each
 arm position covers an 80° arc and its test arc (2 steps) lies between training views 5° apart.
 With full turns (``--steps 12 --step-deg 30``) the test views are 30° or more from every training
@@ -42,7 +43,7 @@ from tdof20.errors import TdofError
 from tdof20.formats import atomic_write_bytes, read_json, write_json
 from tdof20.progress import console
 
-DEFAULT_SCENES = ("single/12", "multi/08")
+DEFAULT_SCENES = ("single/juice_cup_340", "multi/08")
 STAGES = ("capture", "annotate", "dataset", "train", "predict", "score")
 
 
@@ -124,18 +125,19 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     from tdof20.benchmark.dataset import build_dataset, stats
     from tdof20.capture import run_capture, sim_config
     from tdof20.objects.catalog import export_models
-    from tdof20.sim.scenes import get_scene
+    from tdof20.sim.scenes import get_scene, normalize_scene_id
 
     out = Path(out)
-    scenes = tuple(scenes)
-    if not scenes:
+    if not tuple(scenes):
         raise TdofError("give at least one scene")
-    specs = [get_scene(s) for s in scenes]  # unknown names stop here, before anything is written
+    # unknown names stop here, before anything is written; aliases (single/07) become names
+    scenes = tuple(normalize_scene_id(s) for s in scenes)
+    specs = [get_scene(s) for s in scenes]
     if len(set(scenes)) != len(scenes):
         raise TdofError(f"a scene is given twice: {', '.join(scenes)}")
     if train and not any(sp.kind == "single" for sp in specs):
         raise TdofError("training uses the TDoF20-simple split: give at least one single-object scene "
-                        "(single/NN), or --no-train")
+                        "(single/<class>, e.g. single/juice_cup_340), or --no-train")
     if steps * step_deg > 360.0 + 1e-6:
         raise TdofError(f"--steps {steps} × --step-deg {step_deg} is more than one turn")
     opts = {"scenes": list(scenes), "steps": steps, "step_deg": step_deg, "n_arms": n_arms, "width": width,

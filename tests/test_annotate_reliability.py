@@ -56,7 +56,7 @@ def test_out_of_range_options_are_refused_naming_the_file_once(tmp_path, toml, o
 # ------------------------------------------------------------------------------------- another session
 def test_out_holding_another_sessions_annotation_is_refused_unless_force(tmp_path):
     a = _capture(tmp_path / "raw_a", "multi/08")
-    b = _capture(tmp_path / "raw_b", "single/12")
+    b = _capture(tmp_path / "raw_b", "single/juice_cup_340")
     out = tmp_path / "scene"
     annotate(a, out, stages="register", cfg=CFG, progress=False)
     reg_a = (out / "work" / "registration.json").read_bytes()
@@ -73,9 +73,9 @@ def test_out_holding_another_sessions_annotation_is_refused_unless_force(tmp_pat
     assert again["stages"]["register"]["status"] == "up to date"
     # --force replaces it, and nothing of the old one is left
     annotate(b, out, stages="register", cfg=CFG, force=True, progress=False)
-    assert read_json(out / "work" / "state.json")["session"]["scene_id"] == "single/12"
+    assert read_json(out / "work" / "state.json")["session"]["scene_id"] == "single/juice_cup_340"
     assert (out / "work" / "registration.json").read_bytes() != reg_a
-    assert read_json(out / "work" / "registration.json")["scene_id"] == "single/12"
+    assert read_json(out / "work" / "registration.json")["scene_id"] == "single/juice_cup_340"
 
 
 # ------------------------------------------------------------------------------------- not a PNG

@@ -27,7 +27,7 @@ from tdof20.objects import export_models, get_object
 
 W, H = 320, 240
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
-OBJS = (1, 5, 17)  # tumbler (continuous symmetry), beaker with spout (asymmetric), square vase (4-fold)
+OBJS = (17, 7, 1)  # water_cup_270 (continuous symmetry), handle_cup_280 (asymmetric), cube_136 (4-fold)
 TAUS = list(np.arange(0.05, 0.51, 0.05))
 MSSD_TH = list(np.arange(0.05, 0.51, 0.05))
 MSPD_TH = list(np.arange(5, 51, 5))
@@ -142,14 +142,14 @@ def scenes3():
 
 @pytest.fixture(scope="module")
 def bop_dataset(tmp_path_factory, scenes3):
-    """scene 8 (single/08): 3 images of object 5; scene 28 (multi/08): 3 images of objects 1, 5,
-    17 side by side, and image 3 with two instances of object 5 and one of 1. Depth: a plane at
-    900 mm, the objects, a hole stripe and see-through pixels on object 1 (as a transparent
+    """scene 8 (single/08): 3 images of object 7; scene 28 (multi/07): 3 images of objects 17, 7,
+    1 side by side, and image 3 with two instances of object 7 and one of 17. Depth: a plane at
+    900 mm, the objects, a hole stripe and see-through pixels on object 17 (as a transparent
     object gives). depth_scale 0.5. Returns (root, gt rows (scene, im, obj, R, t))."""
     root = tmp_path_factory.mktemp("bopds")
     export_models(root / "models", OBJS)
     rng = np.random.default_rng(11)
-    layout = {8: [[5]] * 3, 28: [[1, 5, 17]] * 3 + [[5, 5, 1]]}
+    layout = {8: [[7]] * 3, 28: [[17, 7, 1]] * 3 + [[7, 7, 17]]}
     xs = {1: [0.0], 3: [-70.0, 0.0, 70.0]}
     gt, targets = [], []
     for sid, images in layout.items():
@@ -168,7 +168,7 @@ def bop_dataset(tmp_path_factory, scenes3):
                 vis = [(d > 0) & (d <= z) for d in deps]
                 test = np.where(np.isfinite(z), z, 900.0).astype(np.float32)
                 for (o, _, _), f in zip(poses, full):
-                    if o == 1:  # see-through: every other column of the tumbler shows the table
+                    if o == 17:  # see-through: every other column of the water glass shows the table
                         see = f.copy()
                         see[:, ::2] = False
                         test[see] = 900.0
@@ -178,7 +178,7 @@ def bop_dataset(tmp_path_factory, scenes3):
                 for o in sorted(set(objs)):
                     targets.append({"scene_id": sid, "im_id": im, "obj_id": o, "inst_count": objs.count(o)})
                 gt += [(sid, im, o, R, t) for o, R, t in poses]
-    write_json(root / "dataset_info.json", {"name": "tdof20", "scenes": {"8": "single/08", "28": "multi/08"}})
+    write_json(root / "dataset_info.json", {"name": "tdof20", "scenes": {"8": "single/08", "28": "multi/07"}})
     write_json(root / "camera.json", {"cx": 160.0, "cy": 120.0, "fx": 300.0, "fy": 300.0, "width": W,
                                       "height": H, "depth_scale": 0.5})
     write_json(root / "test_targets_hard.json", targets)
@@ -194,9 +194,9 @@ def noisy_rows(gt, seed=3):
         lvl = [0.01, 0.05, 0.15, 0.4][k % 4]
         ax = rng.normal(size=3)
         Re = Rotation.from_rotvec(ax / np.linalg.norm(ax) * lvl * 1.2).as_matrix() @ R
-        if o == 1:
-            Re = Re @ Rotation.from_rotvec([0, 0, rng.uniform(0, 2 * np.pi)]).as_matrix()
         if o == 17:
+            Re = Re @ Rotation.from_rotvec([0, 0, rng.uniform(0, 2 * np.pi)]).as_matrix()
+        if o == 1:
             Re = Re @ Rotation.from_rotvec([0, 0, np.pi / 2 * rng.integers(4)]).as_matrix()
         v = rng.normal(size=3)
         te = t + lvl * m.diameter * v / np.linalg.norm(v)
@@ -216,9 +216,9 @@ def _poses(obj_id, rng, B):
     ax = rng.normal(size=(B, 3))
     ax /= np.linalg.norm(ax, axis=1, keepdims=True)
     Re = Rotation.from_rotvec(np.deg2rad(deg)[:, None] * ax).as_matrix() @ Rg
-    if obj_id == 1:
-        Re = Re @ Rotation.from_rotvec(np.c_[np.zeros((B, 2)), rng.uniform(0, 2 * np.pi, B)]).as_matrix()
     if obj_id == 17:
+        Re = Re @ Rotation.from_rotvec(np.c_[np.zeros((B, 2)), rng.uniform(0, 2 * np.pi, B)]).as_matrix()
+    if obj_id == 1:
         Re = Re @ Rotation.from_rotvec(np.c_[np.zeros((B, 2)), np.pi / 2 * rng.integers(0, 4, B)]).as_matrix()
     v = rng.normal(size=(B, 3))
     te = tg + (m.diameter * rng.uniform(0, 0.3, B))[:, None] * v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -232,7 +232,7 @@ def test_mssd_and_mspd_equal_the_straightforward_loops(obj_id):
     info = m.models_info()
     syms = sym_list(info)
     sR, st = M.symmetry_transformations(info)
-    assert len(sR) == len(syms) == {1: 315, 5: 1, 17: 4}[obj_id]
+    assert len(sR) == len(syms) == {17: 315, 7: 1, 1: 4}[obj_id]
     pts = m.vertices
     model = M.ModelPoints(pts, m.diameter, m.symmetric, sym_R=sR, sym_t=st)
     B = 18
@@ -260,7 +260,7 @@ def test_mssd_and_mspd_equal_the_straightforward_loops(obj_id):
 
 
 def test_symmetric_estimate_turned_by_a_symmetry_has_no_error():
-    m = get_object(17)
+    m = get_object(1)
     sR, st = M.symmetry_transformations(m.models_info())
     model = M.ModelPoints(m.vertices, m.diameter, True, sym_R=sR, sym_t=st)
     Rg, tg = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), np.array([10.0, -5.0, 650.0])
@@ -272,7 +272,7 @@ def test_symmetric_estimate_turned_by_a_symmetry_has_no_error():
 
 
 def test_estimate_behind_the_camera_has_infinite_mspd():
-    m = get_object(5)
+    m = get_object(7)
     model = M.ModelPoints(m.vertices, m.diameter, False)
     Rg, tg = np.eye(3), np.array([0.0, 0.0, 600.0])
     out = M.mspd_fast(model, np.stack([Rg, Rg]), np.array([[0, 0, -300.0], [0, 0, 30.0]]), np.stack([Rg, Rg]),
@@ -384,12 +384,12 @@ def test_average_recalls_equal_a_loop_based_bop_scorer(bop_dataset, scenes3, tmp
     root, gt = bop_dataset
     root = _subsampled(root, tmp_path)
     rows = noisy_rows(gt)
-    inst = [g for g in gt if g[:3] == (28, 3, 5)]
+    inst = [g for g in gt if g[:3] == (28, 3, 7)]
     # the two-instance image: estimates swapped, and a third, lower-scored and wrong one
-    rows = [r for r in rows if r[:3] != (28, 3, 5)]
-    rows += [(28, 3, 5, 0.9, inst[1][3], inst[1][4] + [2.0, 0, 0], 0.1),
-             (28, 3, 5, 0.8, inst[0][3], inst[0][4] + [0, 9.0, 0], 0.1),
-             (28, 3, 5, 0.1, inst[0][3], inst[0][4] + [0, 0, 60.0], 0.1)]
+    rows = [r for r in rows if r[:3] != (28, 3, 7)]
+    rows += [(28, 3, 7, 0.9, inst[1][3], inst[1][4] + [2.0, 0, 0], 0.1),
+             (28, 3, 7, 0.8, inst[0][3], inst[0][4] + [0, 9.0, 0], 0.1),
+             (28, 3, 7, 0.1, inst[0][3], inst[0][4] + [0, 0, 60.0], 0.1)]
     ev = evaluate(rows, root, split="hard")
     assert ev.keys[-4:] == ("ar_vsd", "ar_mssd", "ar_mspd", "ar")
     s = ev.summary()
@@ -423,7 +423,7 @@ def test_ground_truth_has_full_recall(bop_dataset):
 
 def test_mspd_is_scaled_to_a_640_pixel_width(bop_dataset):
     root, gt = bop_dataset
-    s, im, o, R, t = gt[0]  # object 5 alone in scene 8: shift the estimate sideways by a known amount
+    s, im, o, R, t = gt[0]  # object 7 alone in scene 8: shift the estimate sideways by a known amount
     shift = 11.0 * t[2] / K[0, 0]  # 11 px at this width -> 22 px at 640: passes 25..50 px only
     rows = [(s, im, o, 1.0, R, t + [shift, 0, 0], 0.1)]
     ev = evaluate(rows, root, targets=_one_target(root, s, im, o), metrics="mspd")
@@ -460,7 +460,7 @@ def test_metrics_selection_and_report(bop_dataset, tmp_path):
     assert (plots / "recall_bop.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Table 3" in (plots / "report.md").read_text()
     ev = evaluate(rows, root, split="hard", metrics="vsd")
-    assert "AR VSD" in report.scenes_table(ev) and "multi/08" in report.scenes_table(ev)
+    assert "AR VSD" in report.scenes_table(ev) and "multi/07" in report.scenes_table(ev)
 
 
 def test_vsd_without_depth_is_said_in_one_line(bop_dataset, tmp_path):

@@ -1,7 +1,6 @@
 """The capture sequencer on the simulated rig: plan, run, resume after any interruption, faults."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -153,7 +152,6 @@ def test_protective_stop_pauses_for_the_operator(tmp_path):
 
 
 def test_workspace_check_refuses_before_any_motion(tmp_path):
-    cfg = small()
     tight = config_from_dict({"session": {"scene_id": "multi/03"}, "turntable": {"steps": 2},
                               "robot": {"limits": {"tcp_max": [850.0, 850.0, 250.0]}}})
     assert workspace_problems(tight)  # the upper arm positions reach above 250 mm
@@ -209,6 +207,8 @@ backend = "oakd"
     (("turntable", "steps", 0), "turntable.steps: must be >= 1"),
     (("session", "objects", [3, 25]), "unknown object id 25"),
     (("session", "scene_id", "multi/30"), "multi/30"),
+    (("session", "scene_id", "multi/20"), "multi/00..multi/19"),  # the release numbers multi scenes 00..19
+    (("session", "scene_id", "single/mug"), "single/<class name>"),
     (("hand_eye", "T_tcp_cam", [1, 0, 0, 0, 0, 1, 0, -0.06, 0, 0, 1, 0.045, 0, 0, 0, 1]), "looks like metres"),
     (("camera", "backend", "sim"), "mixing is not supported"),
 ])
@@ -221,6 +221,21 @@ def test_config_errors_are_one_line_and_name_the_option(tmp_path, edit, needle):
     with pytest.raises(TdofError) as e:
         config_from_dict(data, "rig.toml")
     assert needle in str(e.value) and str(e.value).startswith("rig.toml: ") and "\n" not in str(e.value)
+
+
+def test_scene_alias_is_stored_as_the_class_name(tmp_path):
+    import tomllib
+
+    data = tomllib.loads(CONFIG)
+    data["session"]["scene_id"] = "single/07"
+    assert config_from_dict(data, "rig.toml").session.scene_id == "single/handle_cup_280"
+    data["session"]["scene_id"] = "multi/00"
+    assert config_from_dict(data, "rig.toml").session.scene_id == "multi/00"
+    cfg = sim_config("single/06", steps=1, step_deg=90.0, n_arms=1, width=32, height=24, phases=("transparent",))
+    assert cfg.session.scene_id == "single/goblet_180"
+    run_capture(cfg, tmp_path / "s", yes=True, show_progress=False)
+    s = RawSession.open(tmp_path / "s")
+    assert s.info.scene_id == "single/goblet_180" and s.info.obj_ids == [6]
 
 
 def test_example_config_loads_and_plans():

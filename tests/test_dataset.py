@@ -13,14 +13,19 @@ from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import read_scene
 from tdof20.formats.shards import ShardDataset
+from tdof20.sim.scenes import normalize_scene_id
 from tdof20.sim.truth import oracle_scene
 
 
 def test_scene_ids():
-    assert scene_number("single/07") == 7 and scene_number("multi/08") == 28
-    assert all(scene_name(scene_number(n)) == n for n in ("single/01", "multi/20"))
-    with pytest.raises(TdofError):
-        scene_number("multi/21")
+    assert scene_number("single/07") == scene_number("single/handle_cup_280") == 7
+    assert scene_number("multi/08") == 29 and scene_number("multi/00") == 21 and scene_number("multi/19") == 40
+    assert scene_name(1) == "single/cube_136" and scene_name(21) == "multi/00"
+    assert all(scene_name(scene_number(n)) == n for n in ("single/cube_136", "single/whisky_cup_270", "multi/19"))
+    assert scene_name(scene_number("single/01")) == "single/cube_136"
+    for bad in ("multi/20", "multi/21", "single/mug"):
+        with pytest.raises(TdofError, match="unknown scene"):
+            scene_number(bad)
 
 
 def test_protocols_follow_the_paper_on_its_layout():
@@ -41,7 +46,7 @@ def test_protocols_follow_the_paper_on_its_layout():
     assert counts[("hard", "test")] == 6 * 1600
     # hard: exactly the six unseen multi-object scenes are test
     test_scenes = {sid for sid in range(1, 41) if part_of("hard", sid, 0, steps, n_arms) == "test"}
-    assert test_scenes == {20 + m for m in HARD_TEST_MULTI}
+    assert test_scenes == {21 + m for m in HARD_TEST_MULTI} == {23, 29, 30, 31, 32, 36}
     # simple: test frames form one contiguous arc per arm position, rotated between arms
     for arm in range(n_arms):
         test = [k for k in range(steps) if part_of("simple", 3, arm * steps + k, steps, n_arms) == "test"]
@@ -83,11 +88,24 @@ def test_oracle_scene_is_a_complete_annotated_scene(labelled):
     assert (rest[glass] > 0).mean() > 0.99 and (raw[glass] > 0).mean() < 0.6
 
 
+def test_dataset_info_names_scenes_given_by_their_alias(labelled, tmp_path):
+    _, scenes = labelled
+    alias = tmp_path / "s03"
+    shutil.copytree(scenes[0], alias)
+    p = alias / "scene_info.json"
+    d = json.loads(p.read_text())
+    assert d["scene_id"] == "single/cube_216"
+    p.write_text(json.dumps(d | {"scene_id": "single/03"}))  # an older or hand-written scene_info.json
+    build_dataset([alias], tmp_path / "root", show_progress=False)
+    info = json.loads((tmp_path / "root" / "dataset_info.json").read_text())
+    assert info["scenes"] == {"3": "single/cube_216"} and normalize_scene_id("single/03") == "single/cube_216"
+
+
 def test_build_layout_splits_and_targets(dataset):
     root = dataset
     info = json.loads((root / "dataset_info.json").read_text())
-    assert info["scenes"] == {"3": "single/03", "28": "multi/08"}
-    assert (root / "scenes" / "000003" / "rgb").is_dir() and (root / "scenes" / "000028").is_dir()
+    assert info["scenes"] == {"3": "single/cube_216", "29": "multi/08"}  # capture stored the alias's name
+    assert (root / "scenes" / "000003" / "rgb").is_dir() and (root / "scenes" / "000029").is_dir()
     assert sorted(p.name for p in (root / "models").glob("*.ply"))[0] == "obj_000003.ply"
     cam = json.loads((root / "camera.json").read_text())
     assert (cam["width"], cam["height"]) == (80, 60)
@@ -95,10 +113,10 @@ def test_build_layout_splits_and_targets(dataset):
     assert not set(simple_train) & set(simple_test)
     assert {s for s, _ in simple_train + simple_test} == {3}
     assert len(simple_test) == 2 * round(8 * PAPER_SIMPLE[1] / sum(PAPER_SIMPLE))
-    assert {s for s, _ in split_images(root, "hard", "test")} == {28}  # multi/08 is a hard test scene
+    assert {s for s, _ in split_images(root, "hard", "test")} == {29}  # multi/08 is a hard test scene
     assert {s for s, _ in split_images(root, "hard", "train")} == {3}
     targets = json.loads((root / "test_targets_hard.json").read_text())
-    scene = read_scene(root / "scenes" / "000028")
+    scene = read_scene(root / "scenes" / "000029")
     for t in targets:
         gt = scene.gt[t["im_id"]]
         assert t["obj_id"] in [g["obj_id"] for g in gt] and t["inst_count"] == 1
@@ -134,7 +152,7 @@ def test_pack_and_torch_dataset_round_trip(dataset, tmp_path):
     ds = ShardDataset(out)
     ims = split_images(dataset, "hard", "test")
     assert len(ds) == len(ims)
-    scene = read_scene(dataset / "scenes" / "000028")
+    scene = read_scene(dataset / "scenes" / "000029")
     for n in (0, 7):
         item = ds[n]
         sid, im = ims[n]

@@ -17,6 +17,7 @@ from tdof20.benchmark.dataset import BUILD_MARKER, build_dataset, split_images
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.sim.truth import oracle_scene
+from tdof20.sim.scenes import normalize_scene_id
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
@@ -79,7 +80,7 @@ def test_build_into_another_dataset_is_refused_and_changes_nothing(scenes, tmp_p
     before = tree(root)
     rc, msg = cli(capsys, "dataset", "build", scenes["single/12"], "--out", root)
     assert rc == 2
-    assert msg == (f"error: {root}: holds the dataset of multi/08; building single/12 here would drop multi/08: "
+    assert msg == (f"error: {root}: holds the dataset of multi/08; building single/juice_cup_340 here would drop multi/08: "
                    "add scenes with --add, rebuild it with its full scene list, or choose another --out")
     assert tree(root) == before  # no orphan, no new scene, same targets
 
@@ -109,7 +110,7 @@ def test_add_gives_the_dataset_a_full_build_gives(scenes, tmp_path, capsys):
     assert load(grown / "test_targets_hard.json") == hard_before  # multi/08's targets are kept
     assert sorted(p.name for p in (grown / "models").glob("*.ply")) == \
         sorted(p.name for p in (full / "models").glob("*.ply"))
-    assert sorted(p.name for p in (grown / "scenes").iterdir()) == ["000012", "000028"]
+    assert sorted(p.name for p in (grown / "scenes").iterdir()) == ["000012", "000029"]
     assert tree(grown / "scenes") == tree(full / "scenes")
     assert len(split_images(grown, "simple", "train")) > 0
 
@@ -166,9 +167,10 @@ def test_an_interrupted_build_resumes_and_blocks_other_builds(scenes, tmp_path, 
     with pytest.raises(TdofError, match="an unfinished build of other scenes is here"):
         build_dataset([scenes["single/12"]], root, show_progress=False)
     build_dataset([scenes["single/12"], scenes["multi/08"]], root, show_progress=False)  # resumes
-    assert load(root / "dataset_info.json")["scenes"] == {"12": "single/12", "28": "multi/08"}
+    names = {k: normalize_scene_id(v) for k, v in load(root / "dataset_info.json")["scenes"].items()}
+    assert names == {"12": "single/juice_cup_340", "29": "multi/08"}
     assert not (root / BUILD_MARKER).exists()
-    assert sorted(p.name for p in (root / "scenes").iterdir()) == ["000012", "000028"]
+    assert sorted(p.name for p in (root / "scenes").iterdir()) == ["000012", "000029"]
 
 
 # ------------------------------------------------------------------------------------- F2
@@ -251,7 +253,7 @@ def test_scoring_without_test_targets_is_refused(multi_only, tmp_path, capsys):
     rc, msg = cli(capsys, "benchmark", "score", csv, "--dataset", multi_only, "--split", "simple")
     assert rc == 2 and msg == (f"error: {multi_only / 'test_targets_simple.json'}: no test targets in this file: the "
                                "simple split of the dataset has none to score: the dataset has 0 single-object and 1 "
-                               "multi-object scene (multi/08); simple needs single-object scenes (single/NN)")
+                               "multi-object scene (multi/08); simple needs single-object scenes (single/<class>)")
     (tmp_path / "none.json").write_text("[]")
     rc, msg = cli(capsys, "benchmark", "score", csv, "--dataset", multi_only, "--targets", tmp_path / "none.json")
     assert rc == 2 and msg == f"error: {tmp_path / 'none.json'}: no test targets in this file: nothing to score"
@@ -313,11 +315,11 @@ def test_packing_an_empty_part_names_split_part_root_and_contents(multi_only, tm
                   "--out", tmp_path / "s.h5")
     assert rc == 2 and msg == (f"error: {multi_only}: nothing to pack: the simple split's train part has no images "
                                "(splits/simple_train.json): the dataset has 0 single-object and 1 multi-object scene "
-                               "(multi/08); simple needs single-object scenes (single/NN)")
+                               "(multi/08); simple needs single-object scenes (single/<class>)")
     rc, msg = cli(capsys, "dataset", "pack", multi_only, "--split", "hard", "--part", "train",
                   "--out", tmp_path / "h.h5")
-    assert rc == 2 and msg.endswith("hard trains on single-object scenes (single/NN) and the multi-object scenes "
-                                    "not in its test set (multi/01, 03-07, 12-14, 16-20)")
+    assert rc == 2 and msg.endswith("hard trains on single-object scenes (single/<class>) and the multi-object "
+                                    "scenes not in its test set (multi/00, 01, 03-07, 12-14, 16-19)")
     assert not (tmp_path / "s.h5").exists() and not (tmp_path / "h.h5").exists()
 
 

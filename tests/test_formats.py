@@ -54,7 +54,7 @@ def make_info(steps: int = 3) -> SessionInfo:
     ]
     return SessionInfo(
         scene_id="multi/08",
-        objects=[{"obj_id": 3, "name": "beaker"}, {"obj_id": 11, "slot": 2}],
+        objects=[{"obj_id": 3, "name": "cube_216"}, {"obj_id": 11, "slot": 2}],
         camera=cam,
         arm_positions=arms,
         T_tcp_cam=make_T(rotation_matrix([0, 0, 1], 0.05), [0.0, 60.0, 45.0]),
@@ -114,7 +114,7 @@ def test_session_round_trip_keeps_extra_keys(tmp_path):
     assert d["camera"]["serial"] == "OAK-1944" and d["camera"]["depth_scale"] == 0.5
     assert d["hand_eye"]["method"] == "tsai" and len(d["hand_eye"]["T_tcp_cam"]) == 16
     assert d["turntable"]["port"] == "/dev/ttyUSB0"
-    assert d["objects"][0]["name"] == "beaker"
+    assert d["objects"][0]["name"] == "cube_216"
     # the file path works as well as the folder, and write -> read -> write is byte-identical
     assert read_session(tmp_path / "session.json") == info
     before = (tmp_path / "session.json").read_bytes()
@@ -201,6 +201,8 @@ _HE_metres = make_T(rotation_matrix([0, 0, 1], 0.05), [0.0, 0.06, 0.045])  # the
      "hand_eye.T_tcp_cam translation has length 0.075: looks like metres, millimetres expected"),
     (("arm_positions",), [], "arm_positions must be a non-empty list"),
     (("scene_id",), "multi/21", "scene_id must look like"),
+    (("scene_id",), "multi/20", "(NN in 00..19)"),  # the release numbers its multi scenes 00..19
+    (("scene_id",), "single/21", "scene_id must look like"),
     (("scene_id",), "multi/8", "scene_id must look like"),
     (("scene_id",), "scene/01", "scene_id must look like"),
     (("scene_id",), 8, "scene_id must be a string"),
@@ -243,6 +245,10 @@ def test_single_scene_holds_one_object(tmp_path):
     d["objects"] = d["objects"][:1]
     write_raw(tmp_path, d)
     assert read_session(tmp_path).scene_id == "single/20"
+    for name in ("single/whisky_cup_270", "multi/00", "multi/19"):  # the names, and the release's multi numbers
+        d["scene_id"] = name
+        write_raw(tmp_path, d if name.startswith("single") else d | {"objects": session_dict()["objects"]})
+        assert read_session(tmp_path).scene_id == name
 
 
 @pytest.mark.parametrize("text,expect", [

@@ -1,4 +1,5 @@
-"""The 20-object catalog: watertight meshes, model frame, diameters, symmetries, keypoints, export."""
+"""The catalog of TDoF20's 20 classes: names, capacities, watertight meshes, model frame, diameters,
+symmetries, keypoints, export."""
 
 from __future__ import annotations
 
@@ -27,11 +28,15 @@ from tdof20.objects import (
 from tdof20.objects import catalog, shapes
 
 IDS = list(range(1, 21))
-ASYMMETRIC = ["beaker_with_spout", "graduated_cylinder", "measuring_cup", "mug", "pitcher",
-              "flask_flat_face", "teapot"]
-CONTINUOUS = ["tumbler", "highball_glass", "wine_glass", "shot_glass", "erlenmeyer_flask",
-              "round_bottom_flask", "water_bottle", "wine_bottle", "bowl", "vase", "jar"]
-DISCRETE = {"square_vase": 4, "hexagonal_glass": 6}
+TDOF20_CLASSES = ["cube_136", "cube_166", "cube_216", "cuboid_210", "cuboid_330", "goblet_180", "handle_cup_280",
+                  "handle_cup_440", "handle_cup_480", "icecream_cup_175", "juice_cup_250", "juice_cup_340",
+                  "juice_cup_350", "quartet_cup_80", "quartet_cup_90", "short_cup_220", "water_cup_270",
+                  "water_cup_300", "whisky_cup_225", "whisky_cup_270"]  # the release's classes.txt order
+ASYMMETRIC = ["handle_cup_280", "handle_cup_440", "handle_cup_480"]
+CONTINUOUS = ["goblet_180", "icecream_cup_175", "juice_cup_250", "juice_cup_340", "juice_cup_350", "short_cup_220",
+              "water_cup_270", "water_cup_300", "whisky_cup_225", "whisky_cup_270"]
+DISCRETE = {"cube_136": 4, "cube_166": 4, "cube_216": 4, "cuboid_210": 2, "cuboid_330": 2,
+            "quartet_cup_80": 4, "quartet_cup_90": 4}
 
 
 @functools.lru_cache(maxsize=None)
@@ -80,15 +85,16 @@ def test_ids_names_and_access():
     objs = all_objects()
     assert [m.obj_id for m in objs] == IDS
     names = [m.name for m in objs]
-    assert len(set(names)) == 20
-    assert all(re.fullmatch(r"[a-z][a-z0-9_]*", n) for n in names)
-    assert names[:4] == ["tumbler", "highball_glass", "wine_glass", "shot_glass"]
-    assert names[16:] == ["square_vase", "hexagonal_glass", "flask_flat_face", "teapot"]
+    assert names == TDOF20_CLASSES
+    assert all(re.fullmatch(r"[a-z][a-z0-9_]*_\d+", n) for n in names)
+    assert catalog.object_names() == dict(zip(IDS, TDOF20_CLASSES))
     assert all(m.kind for m in objs)
     for m in objs:
         assert object_by_name(m.name) is m
+        assert catalog.object_id_by_name(m.name) == m.obj_id
         assert get_object(m.obj_id) is m  # cached
     assert get_object(np.int64(3)) is get_object(3)
+    assert set(ASYMMETRIC) | set(CONTINUOUS) | set(DISCRETE) == set(TDOF20_CLASSES)
 
 
 @pytest.mark.parametrize("bad", [0, 21, 25, -1])
@@ -104,9 +110,9 @@ def test_unknown_id_message_and_name():
     with pytest.raises(TdofError, match="unknown object id"):
         get_object("3")
     with pytest.raises(TdofError) as e:
-        object_by_name("champagne_flute")
+        object_by_name("wine_glass")  # an old name
     msg = str(e.value)
-    assert "champagne_flute" in msg and "wine_glass" in msg and "teapot" in msg and "\n" not in msg
+    assert "wine_glass" in msg and "cube_136" in msg and "whisky_cup_270" in msg and "\n" not in msg
 
 
 # ------------------------------------------------------------------------------------------
@@ -158,15 +164,70 @@ def test_model_frame_and_sizes(obj_id):
     assert len(_scene(obj_id).list_intersections(o3d.core.Tensor(ray))["t_hit"].numpy()) >= 2
 
 
-def test_realistic_sizes():
+def _cavity_by_lid(m: ObjectModel) -> float:
+    """The cavity's volume (ml) from the meshes alone: a lid slab laid on the rim (0.2 mm into it) and
+    united with the glass (manifold3d) encloses the cavity as an inner shell of negative volume."""
+    lo, hi = m.bbox_min, m.bbox_max
+    lid = shapes.box([lo[0] - 1, lo[1] - 1, hi[2] - 0.2], [hi[0] + 1, hi[1] + 1, hi[2] + 2])
+    parts = shapes.union(m.to_trimesh(), lid).split(only_watertight=False)
+    vols = sorted(shapes.signed_volume(p.vertices, p.faces) for p in parts)
+    assert len(vols) == 2 and vols[0] < 0 < vols[1]  # the outer shell and the cavity
+    return -vols[0] / 1000.0
+
+
+def test_capacities_match_the_names():
+    """The number in a class name is its capacity in ml: every cavity holds that, filled to the brim,
+    within 5 % (the ray-cast measure of the catalog); and that measure agrees within 2 % with an
+    exact one (a lid on the rim) on one object of each shape family."""
+    for m in all_objects():
+        assert m.nominal_capacity_ml == int(m.name.rsplit("_", 1)[1])
+        assert abs(m.capacity_ml / m.nominal_capacity_ml - 1.0) < 0.05, (m.name, m.capacity_ml)
+    for name in ("cube_136", "cuboid_330", "goblet_180", "handle_cup_480", "icecream_cup_175", "quartet_cup_80",
+                 "whisky_cup_225"):
+        m = object_by_name(name)
+        exact = _cavity_by_lid(m)
+        assert abs(m.capacity_ml / exact - 1.0) < 0.02, (name, m.capacity_ml, exact)
+
+
+def test_cavity_volume_of_a_known_cup():
+    """A plain cylinder cup (inner radius 30, inner depth 60 above a 10 mm floor, flat top): 169.6 ml."""
+    outer = shapes.rounded_rect_section(32.0, 32.0, 31.9, corner_points=64, edge_points=0)
+    inner = shapes.rounded_rect_section(30.0, 30.0, 29.9, corner_points=64, edge_points=0)
+    tm = shapes.prism_vessel(outer, inner, height=70.0, floor=10.0, fillet=0.5, inner_fillet=0.5)
+    want = shapes.section_area(inner) * 60.0  # the tiny fillet at the floor aside
+    got = catalog.cavity_volume(tm.vertices, tm.faces)
+    assert abs(got / want - 1.0) < 0.015, (got, want)
+
+
+def test_shapes_fit_their_names():
     size = {m.name: m.size for m in all_objects()}
-    w, _, h = size["tumbler"]
-    assert 65 < w < 85 and 85 < h < 105
-    w, _, h = size["wine_glass"]
-    assert 70 < w < 90 and 180 < h < 220
-    w, _, h = size["wine_bottle"]
-    assert 70 < w < 80 and 280 < h < 310
-    assert size["shot_glass"][2] < 70 and size["bowl"][0] > 130
+    for name in ("cube_136", "cube_166", "cube_216"):  # as wide as deep as tall, within 10 %
+        x, y, z = size[name]
+        assert x == pytest.approx(y) and abs(z / x - 1.0) < 0.1
+    for name in ("cuboid_210", "cuboid_330"):  # a rectangle, long side along x
+        x, y, _ = size[name]
+        assert x > 1.2 * y
+    ratio = {n: size[n][2] / size[n][0] for n in size if not n.startswith("handle")}  # height / width
+    assert min(ratio[n] for n in ("water_cup_270", "water_cup_300")) > max(
+        ratio[n] for n in ("juice_cup_250", "juice_cup_340", "juice_cup_350", "whisky_cup_225", "whisky_cup_270",
+                           "short_cup_220"))  # water glasses are the tallest tumblers
+    assert max(ratio[n] for n in ("whisky_cup_225", "whisky_cup_270", "short_cup_220")) < 0.85  # short, wide
+    assert ratio["short_cup_220"] < 0.6 and ratio["icecream_cup_175"] < 0.7
+    for name in ("handle_cup_280", "handle_cup_440", "handle_cup_480"):  # the handle reaches out towards -x
+        m = object_by_name(name)
+        assert m.bbox_min[0] < -m.bbox_max[0] - 25.0
+    # the whisky tumblers' base is the thickest: the first glass the z axis meets from below
+    def base(name):
+        m = object_by_name(name)
+        ray = np.array([[0.3, 0.2, m.z_min - 10.0, 0.0, 0.0, 1.0]], np.float32)  # off the pole vertex
+        t = np.sort(_scene(m.obj_id).list_intersections(o3d.core.Tensor(ray))["t_hit"].numpy())
+        return t[1] - t[0]
+    assert min(base("whisky_cup_225"), base("whisky_cup_270")) > 12.0 > max(base("water_cup_270"), base("juice_cup_250"))
+    # the goblet's bowl sits on a stem: a ray along y at a quarter of the height meets only the stem
+    g = object_by_name("goblet_180")
+    ray = np.array([[0.0, -1000.0, g.z_min + 0.25 * g.size[2], 0.0, 1.0, 0.0]], np.float32)
+    t = np.sort(_scene(g.obj_id).list_intersections(o3d.core.Tensor(ray))["t_hit"].numpy())
+    assert len(t) == 2 and t[1] - t[0] < 12.0
 
 
 # ------------------------------------------------------------------------------------------
@@ -209,7 +270,7 @@ def test_symmetry_records():
             assert m.name in ASYMMETRIC
             assert not m.symmetric
             assert m.symmetries_continuous == () and m.symmetries_discrete == ()
-    assert len(ASYMMETRIC) >= 6
+    assert len(ASYMMETRIC) == 3 and len(CONTINUOUS) == 10
 
 
 @pytest.mark.parametrize("name", CONTINUOUS)
@@ -256,7 +317,7 @@ def test_keypoints(obj_id):
 
 
 def test_sample_surface_deterministic_and_on_surface():
-    m = object_by_name("mug")
+    m = object_by_name("handle_cup_280")
     a, b, c = m.sample_surface(500, seed=3), m.sample_surface(500, seed=3), m.sample_surface(500, seed=4)
     assert a.shape == (500, 3)
     assert np.array_equal(a, b) and not np.allclose(a, c)
@@ -339,7 +400,7 @@ def test_bad_profiles_rejected():
 
 
 def test_builds_are_deterministic():
-    for obj_id in (16, 20):  # boolean unions / differences included
+    for obj_id in (1, 7):  # boolean differences / unions included
         a, b = catalog._build(obj_id), get_object(obj_id)
         assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
         assert np.array_equal(a.keypoints, b.keypoints) and a.diameter == b.diameter

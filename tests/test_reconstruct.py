@@ -57,7 +57,6 @@ def test_fused_scene_and_clusters_match_the_truth(session):
 def test_known_models_register_into_the_clusters(session):
     """Each catalog model, fitted to its reconstructed cluster, lands on the true pose."""
     from tdof20.annotate.models import fit_model
-    from tdof20.geometry import rotation_angle
 
     s = RawSession.open(session)
     truth = read_scene(session / "truth")
@@ -88,3 +87,96 @@ def test_known_models_register_into_the_clusters(session):
         else:
             d = np.linalg.norm(est - true, axis=1)
         assert d.mean() < 0.1 * obj.diameter, (obj.name, d.mean())  # the benchmark's ADD(S) criterion
+
+
+# ------------------------------------------------------------------ join_floating (synthetic clusters)
+# A cup of radius 38 mm (3 mm walls, 8 mm base) standing on the table z = 0, seen from the +x side
+# by a camera over the table: a turntable step or two leave it as three clusters (module docstring).
+def _arc(centre, radius, a0, a1, z0, z1, n=600, seed=0):
+    """Points on a vertical wall: angles a0..a1 (deg) about ``centre`` (x, y), heights z0..z1."""
+    rng = np.random.default_rng(seed)
+    a = np.radians(rng.uniform(a0, a1, n))
+    z = rng.uniform(z0, z1, n)
+    return np.stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), z], axis=1)
+
+
+def _disc(centre, radius, z, n=400, seed=0):
+    rng = np.random.default_rng(seed)
+    r = radius * np.sqrt(rng.uniform(0, 1, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    return np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a), np.full(n, float(z))], axis=1)
+
+
+def _cup_pieces(centre, seed=0):
+    """The near outer wall (standing), the far inner wall seen over the rim (floating: 45..88 mm up)
+    and the inner bottom (8 mm up)."""
+    return [_arc(centre, 38.0, -80, 80, 0.5, 90, n=1200, seed=seed),
+            _arc(centre, 35.0, 110, 250, 45, 88, n=500, seed=seed + 1),
+            _disc(centre, 28.0, 8.0, n=400, seed=seed + 2)]
+
+
+def _join(pieces, order=None, R=None):
+    """join_floating on ``pieces`` (given in ``order``, optionally all turned by R with the table):
+    the groups it returns, as sorted tuples of piece indices (each point's piece is in its normal)."""
+    from tdof20.annotate.reconstruct import ReconstructionConfig, join_floating
+
+    order = list(range(len(pieces))) if order is None else list(order)
+    R = np.eye(3) if R is None else R
+    plane = np.r_[R @ [0.0, 0.0, 1.0], 0.0]
+    clusters = [(pieces[k] @ R.T, np.tile([float(k), 0.0, 0.0], (len(pieces[k]), 1))) for k in order]
+    out = join_floating(clusters, plane, ReconstructionConfig())
+    assert sum(len(p) for p, _ in out) == sum(len(p) for p in pieces)  # no point lost or doubled
+    groups = []
+    for pts, tags in out:
+        assert len(pts) == len(tags)
+        groups.append(tuple(sorted({int(k) for k in tags[:, 0]})))
+    return sorted(groups)
+
+
+def _permutations(n):
+    import itertools
+    return list(itertools.permutations(range(n)))
+
+
+@pytest.mark.parametrize("order", _permutations(3))
+def test_join_floating_makes_one_cup_of_its_three_pieces(order):
+    from tdof20.geometry import rotation_matrix
+
+    pieces = _cup_pieces((10.0, -20.0))
+    assert _join(pieces, order) == [(0, 1, 2)]
+    # the same with the table tilted (the plane's normal, not the z axis, is "up")
+    assert _join(pieces, order, R=rotation_matrix([1.0, 2.0, 0.5], np.radians(35))) == [(0, 1, 2)]
+
+
+def test_join_floating_keeps_two_cups_10mm_apart_apart():
+    # outer walls 10 mm apart (centres 2 x 38 + 10 mm): each cup keeps its own three pieces
+    a, b = _cup_pieces((0.0, 0.0), seed=0), _cup_pieces((86.0, 0.0), seed=10)
+    pieces = a + b
+    expected = [(0, 1, 2), (3, 4, 5)]
+    for order in ([0, 1, 2, 3, 4, 5], [5, 4, 3, 2, 1, 0], [3, 0, 4, 1, 5, 2]):
+        assert _join(pieces, order) == expected
+    # two whole cups (full rings, both standing) 10 mm apart stay two
+    rings = [_arc((0.0, 0.0), 38.0, 0, 360, 0.5, 90, seed=1), _arc((86.0, 0.0), 38.0, 0, 360, 0.5, 90, seed=2)]
+    assert _join(rings) == [(0,), (1,)] == _join(rings, [1, 0])
+
+
+def test_join_floating_joins_a_floating_piece_to_the_nearest_standing_cluster():
+    a = _arc((0.0, 0.0), 38.0, 0, 360, 0.5, 90, seed=1)          # standing cup A
+    b = _arc((120.0, 0.0), 38.0, 0, 360, 0.5, 90, seed=2)        # standing cup B
+    rng = np.random.default_rng(3)
+
+    def patch(x):  # a flat strip (no footprint circle), 60..80 mm above the table, beside B
+        return np.stack([rng.uniform(x, x + 4, 300), rng.uniform(-15, 15, 300), rng.uniform(60, 80, 300)], 1)
+
+    near_b = patch(120.0 + 38.0 + 20.0)      # 20 mm from B's wall across the table, 178 mm from A's
+    assert _join([a, b, near_b]) == [(0,), (1, 2)]
+    assert _join([a, b, near_b], [2, 0, 1]) == [(0,), (1, 2)]
+    far = patch(120.0 + 38.0 + 80.0)         # 80 mm from B: beyond floating_join_mm (60): left alone
+    assert _join([a, b, far]) == [(0,), (1,), (2,)]
+    # a piece low enough to stand (lowest point 10 mm up <= floating_mm 15) is an object of its own
+    low = patch(120.0 + 38.0 + 20.0)
+    low[:, 2] -= 50.0
+    assert _join([a, b, low]) == [(0,), (1,), (2,)]
+    # with nothing standing, nothing is joined; one cluster comes back as it is
+    assert _join([near_b, far]) == [(0,), (1,)]
+    assert _join([a]) == [(0,)]

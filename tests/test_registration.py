@@ -37,7 +37,7 @@ def multi(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def single(tmp_path_factory):
-    d = _session(tmp_path_factory, "single/07")
+    d = _session(tmp_path_factory, "single/handle_cup_280")
     return d, register_session(d, progress=False)
 
 

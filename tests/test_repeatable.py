@@ -2,7 +2,7 @@
 points and mesh in two processes (seeds and open3d's hash-map order are process state), and the
 table plane does not depend on the RANSAC samples.
 
-Sizes: single/12 (the vase) with a cabinet beside the table, 240x180, 2 arms x 6 steps, true
+Sizes: single/juice_cup_340 (a straight tumbler) with a cabinet beside the table, 240x180, 2 arms x 6 steps, true
 poses, the depth cropped to the turntable volume as the pipeline does; each reconstruction runs
 in its own process (~5 s each with the imports on an idle machine)."""
 
@@ -60,7 +60,7 @@ _RECONSTRUCT = textwrap.dedent("""
 @pytest.fixture(scope="module")
 def cluttered_session(tmp_path_factory):
     out = tmp_path_factory.mktemp("rep") / "s"
-    run_capture(sim_config("single/12", steps=6, step_deg=60.0, n_arms=2, width=240, height=180,
+    run_capture(sim_config("single/juice_cup_340", steps=6, step_deg=60.0, n_arms=2, width=240, height=180,
                            clutter=("cabinet",)), out, yes=True, show_progress=False)
     return out
 

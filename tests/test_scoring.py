@@ -22,7 +22,7 @@ from tdof20.formats import BopSceneWriter, write_json
 from tdof20.objects import export_models, get_object
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
-OBJS = (1, 5, 17)  # tumbler (continuous symmetry), beaker with spout (asymmetric), square vase (4-fold)
+OBJS = (1, 7, 17)  # cube_136 (4-fold symmetry), handle_cup_280 (asymmetric), water_cup_270 (continuous)
 KEYS = {"n", "add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s", "ar_mssd", "ar_mspd"}  # no depth: no VSD, AR
 PARTS = {"objects", "mean", "all", "scenes"}
 
@@ -42,15 +42,16 @@ def rand_pose(rng) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    """scene 8 (single/08): 3 images of object 5; scene 28 (multi/08): 3 images of objects
-    1, 5, 17, and image 3 with two instances of object 5. Returns (root, gt rows)."""
+    """scene 8 (single/handle_cup_440, holding object 7 here): 3 images of object 7; scene 28
+    (multi/07): 3 images of objects 1, 7, 17, and image 3 with two instances of object 7.
+    Returns (root, gt rows)."""
     root = tmp_path_factory.mktemp("ds")
     export_models(root / "models", OBJS)
     rng = np.random.default_rng(7)
     mask = np.zeros((4, 6), bool)
     mask[1:3, 2:5] = True
     gt, targets = [], []
-    layout = {8: [[5]] * 3, 28: [[1, 5, 17]] * 3 + [[5, 5, 1]]}
+    layout = {8: [[7]] * 3, 28: [[1, 7, 17]] * 3 + [[7, 7, 1]]}
     for sid, images in layout.items():
         with BopSceneWriter(root / "scenes" / f"{sid:06d}") as w:
             for im, objs in enumerate(images):
@@ -59,7 +60,7 @@ def dataset(tmp_path_factory):
                 for o in sorted(set(objs)):
                     targets.append({"scene_id": sid, "im_id": im, "obj_id": o, "inst_count": objs.count(o)})
                 gt += [(sid, im, o, R, t) for o, R, t in poses]
-    write_json(root / "dataset_info.json", {"name": "tdof20", "scenes": {"8": "single/08", "28": "multi/08"}})
+    write_json(root / "dataset_info.json", {"name": "tdof20", "scenes": {"8": "single/handle_cup_440", "28": "multi/07"}})
     write_json(root / "camera.json", {"cx": 320.0, "cy": 240.0, "fx": 600.0, "fy": 600.0, "width": 640,
                                       "height": 480, "depth_scale": 1.0})
     write_json(root / "test_targets_hard.json", targets)
@@ -85,7 +86,7 @@ def csv_line(s, im, o, sc, R, t, tm) -> str:
 # metrics by hand
 # ---------------------------------------------------------------------------------------------
 def test_identity_pose_has_zero_error():
-    P = get_object(5).vertices
+    P = get_object(7).vertices
     R, t = rot([1, 2, 3], 40), np.array([10.0, -20.0, 700.0])
     assert M.add(R, t, R, t, P) == 0.0
     assert M.adds(R, t, R, t, P) == pytest.approx(0.0, abs=1e-9)
@@ -93,7 +94,7 @@ def test_identity_pose_has_zero_error():
 
 
 def test_pure_translation():
-    P = get_object(5).vertices
+    P = get_object(7).vertices
     R, t = rot([0, 1, 1], 30), np.array([0.0, 0.0, 700.0])
     dt = np.array([3.0, -4.0, 12.0])  # |dt| = 13
     assert M.add(R, t + dt, R, t, P) == pytest.approx(13.0, abs=1e-9)
@@ -102,7 +103,7 @@ def test_pure_translation():
 
 
 def test_symmetric_object_turned_about_its_axis():
-    for obj_id, deg in ((1, 45.0), (17, 90.0)):  # 64-segment revolution; square section
+    for obj_id, deg in ((17, 45.0), (1, 90.0)):  # 64-segment revolution; square section
         P = get_object(obj_id).vertices
         Rg, t = rot([1, 0, 0], 20), np.array([0.0, 0.0, 700.0])
         Re = Rg @ rot([0, 0, 1], deg)
@@ -153,7 +154,7 @@ def _poses_near_threshold(model, rng, B):
     return Re, te, Rg, tg
 
 
-@pytest.mark.parametrize("obj_id", [1, 5])
+@pytest.mark.parametrize("obj_id", [1, 7])
 def test_fast_path_equals_straightforward(obj_id):
     rng = np.random.default_rng(obj_id)
     m = get_object(obj_id)
@@ -208,12 +209,12 @@ def test_ground_truth_scores_one_everywhere(dataset, tmp_path):
     csv = write_results_csv(tmp_path / "gt_tdof20-hard.csv", rows_of(gt))
     out = score(csv, root, split="hard")
     assert set(out) == PARTS
-    assert set(out["objects"]) == {"1", "5", "17"}
+    assert set(out["objects"]) == {"1", "7", "17"}
     for part in list(out["objects"].values()) + [out["mean"], out["all"]]:
         assert set(part) == KEYS
         for k in KEYS - {"n"}:
             assert part[k] == pytest.approx(1.0, abs=1e-9)
-    assert out["objects"]["5"]["n"] == 3 + 3 + 2 and out["all"]["n"] == len(gt)
+    assert out["objects"]["7"]["n"] == 3 + 3 + 2 and out["all"]["n"] == len(gt)
     assert out["mean"]["n"] == 3
     simple = score(rows_of(gt), root, split="simple")  # a list of rows works too
     assert simple["all"]["n"] == 3 and simple["all"]["add"] == 1.0
@@ -242,17 +243,17 @@ def test_top_scored_prediction_counts(dataset):
 
 def test_several_instances_are_matched_by_error(dataset):
     root, gt = dataset
-    inst = [g for g in gt if g[:3] == (28, 3, 5)]
-    others = [g for g in gt if g[:3] != (28, 3, 5)]
+    inst = [g for g in gt if g[:3] == (28, 3, 7)]
+    others = [g for g in gt if g[:3] != (28, 3, 7)]
     assert len(inst) == 2
-    swapped = [(28, 3, 5, 0.9, inst[1][3], inst[1][4], 0.25), (28, 3, 5, 0.8, inst[0][3], inst[0][4], 0.25)]
-    s5 = score(rows_of(others) + swapped, root, split="hard")["objects"]["5"]
+    swapped = [(28, 3, 7, 0.9, inst[1][3], inst[1][4], 0.25), (28, 3, 7, 0.8, inst[0][3], inst[0][4], 0.25)]
+    s5 = score(rows_of(others) + swapped, root, split="hard")["objects"]["7"]
     assert s5["add"] == 1.0 and s5["n"] == 8
-    one = score(rows_of(others) + swapped[:1], root, split="hard")["objects"]["5"]
+    one = score(rows_of(others) + swapped[:1], root, split="hard")["objects"]["7"]
     assert one["add"] == pytest.approx(7 / 8)
     # a wrong estimate scored higher pushes the correct one for instance 0 beyond inst_count = 2
-    wrong = (28, 3, 5, 0.95, inst[0][3], inst[0][4] + [0.0, 0.0, 90.0], 0.25)
-    assert score(rows_of(others) + swapped + [wrong], root, split="hard")["objects"]["5"]["add"] == pytest.approx(7 / 8)
+    wrong = (28, 3, 7, 0.95, inst[0][3], inst[0][4] + [0.0, 0.0, 90.0], 0.25)
+    assert score(rows_of(others) + swapped + [wrong], root, split="hard")["objects"]["7"]["add"] == pytest.approx(7 / 8)
 
 
 def test_json_report_and_plots(dataset, tmp_path):
@@ -273,9 +274,9 @@ def test_json_report_and_plots(dataset, tmp_path):
             assert all(0.0 <= part[k] <= 1.0 for k in KEYS - {"n"})
     assert data["noisy_tdof20-hard"]["all"]["adds"] < 1.0
     assert "Table 1" in text and "Table 2" in text and "good_tdof20-hard" in text and "noisy_tdof20-hard" in text
-    assert "beaker_with_spout *" in text and "tumbler *" not in text
+    assert "handle_cup_280 *" in text and "water_cup_270 *" not in text
     md = (plots / "report.md").read_text()
-    assert "**5 beaker_with_spout**" in md and "| 1 tumbler |" in md
+    assert "**7 handle_cup_280**" in md and "| 1 cube_136 |" in md
     for name in ("accuracy_add_s.png", "accuracy_adds_mm.png", "accuracy_proj2d.png"):
         assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     one = tmp_path / "one.json"
@@ -288,8 +289,8 @@ def test_report_marks_asymmetric_objects(dataset):
     ev = evaluate(rows_of(gt), root, split="hard")
     txt = report.table_text([ev], "add_s")
     md = report.table_markdown([ev], "proj2d")
-    assert "5 beaker_with_spout *" in txt and "17 square_vase *" not in txt
-    assert "**5 beaker_with_spout**" in md
+    assert "7 handle_cup_280 *" in txt and "17 water_cup_270 *" not in txt
+    assert "**7 handle_cup_280**" in md
     assert "all metrics" in report.metrics_table(ev)
 
 
@@ -415,10 +416,10 @@ def test_bad_targets_and_split(dataset, tmp_path):
     root, gt = dataset
     rows = rows_of(gt)
     t = tmp_path / "t.json"
-    write_json(t, [{"scene_id": 8, "im_id": 0, "obj_id": 5, "inst_count": 2}])
-    with pytest.raises(TdofError, match="2 instances of object 5"):
+    write_json(t, [{"scene_id": 8, "im_id": 0, "obj_id": 7, "inst_count": 2}])
+    with pytest.raises(TdofError, match="2 instances of object 7"):
         score(rows, root, targets=t)
-    write_json(t, [{"scene_id": 8, "im_id": 77, "obj_id": 5, "inst_count": 1}])
+    write_json(t, [{"scene_id": 8, "im_id": 77, "obj_id": 7, "inst_count": 1}])
     with pytest.raises(TdofError, match="no image 77"):
         score(rows, root, targets=t)
     with pytest.raises(TdofError, match="exactly one of"):

@@ -8,7 +8,10 @@ from tdof20.formats import RawSession, read_scene, read_session, sha256_file
 from tdof20.geometry import invert, rotation_angle, transform_points
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout, ur5_fk, ur5_ik
-from tdof20.sim.scenes import get_scene, scene_ids
+from tdof20.benchmark.splits import HARD_TEST_MULTI, part_of
+from tdof20.objects import object_names
+from tdof20.sim.scenes import (get_scene, normalize_scene_id, parse_scene_id, scene_ids, scene_name,
+                               scene_number)
 from tdof20.capture import run_capture, sim_config
 from tdof20.capture.rig import build_rig
 
@@ -47,10 +50,52 @@ def test_arm_positions_look_at_the_table():
 # ------------------------------------------------------------------------------- scenes
 def test_forty_scenes_exist_and_unknown_names_fail():
     ids = scene_ids()
-    assert len(ids) == 40 and ids[0] == "single/01" and ids[-1] == "multi/20"
-    for bad in ("multi/21", "single/00", "foo", "multi/8"):
-        with pytest.raises(TdofError, match="unknown scene"):
+    assert len(ids) == 40 and len(set(ids)) == 40
+    assert ids[:20] == [f"single/{n}" for n in object_names().values()]
+    assert ids[0] == "single/cube_136" and ids[19] == "single/whisky_cup_270"
+    assert ids[20:] == [f"multi/{i:02d}" for i in range(20)]
+    for bad in ("multi/20", "multi/21", "single/00", "single/21", "foo", "multi/8", "single/wine_glass",
+                "single/cube_136/", "Single/cube_136", "multi/-1"):
+        with pytest.raises(TdofError, match="unknown scene") as e:
             get_scene(bad)
+        msg = str(e.value)
+        assert "\n" not in msg and "single/<class name>" in msg and "single/01..single/20" in msg
+        assert "multi/00..multi/19" in msg
+
+
+def test_scene_names_aliases_and_numbers():
+    names = object_names()
+    for obj_id, name in names.items():
+        alias = f"single/{obj_id:02d}"
+        assert normalize_scene_id(alias) == normalize_scene_id(f"single/{name}") == f"single/{name}"
+        assert parse_scene_id(alias) == parse_scene_id(f"single/{name}") == ("single", obj_id)
+        assert scene_number(alias) == scene_number(f"single/{name}") == obj_id
+        assert scene_name(obj_id) == f"single/{name}"
+        s = get_scene(alias)
+        assert s is get_scene(f"single/{name}") and s.scene_id == f"single/{name}"  # one scene, its name
+        assert s.obj_ids == [obj_id] and s.number == obj_id and s.numeric_id == obj_id
+    assert scene_name(1) == "single/cube_136" and scene_name(6) == "single/goblet_180"
+    for nn in range(20):
+        sid = f"multi/{nn:02d}"
+        assert normalize_scene_id(sid) == sid and scene_number(sid) == 21 + nn and scene_name(21 + nn) == sid
+        assert get_scene(sid).number == nn and get_scene(sid).numeric_id == 21 + nn
+    assert [scene_number(s) for s in scene_ids()] == list(range(1, 41))
+    for bad in (0, 41, -3, 2.5, "3", True):
+        with pytest.raises(TdofError, match="unknown scene id"):
+            scene_name(bad)
+
+
+def test_hard_split_is_the_released_one():
+    """TDoF20-hard tests on multi/02, 08, 09, 10, 11, 15 (the release's numbering 00-19), trains on
+    every single-object scene and the other 14 multi-object scenes; -simple uses single scenes only."""
+    assert HARD_TEST_MULTI == (2, 8, 9, 10, 11, 15)
+    test = [s for s in scene_ids() if part_of("hard", scene_number(s), 0, 1, 1) == "test"]
+    assert test == ["multi/02", "multi/08", "multi/09", "multi/10", "multi/11", "multi/15"]
+    train = [s for s in scene_ids() if part_of("hard", scene_number(s), 0, 1, 1) == "train"]
+    assert len(train) == 34 and sum(s.startswith("multi/") for s in train) == 14
+    assert "multi/00" in train and "multi/19" in train
+    assert all(part_of("simple", scene_number(s), 0, 16, 4) is None for s in scene_ids()[20:])
+    assert all(part_of("simple", scene_number(s), 0, 16, 4) is not None for s in scene_ids()[:20])
 
 
 def test_scene_contents_and_no_interpenetration():
@@ -71,7 +116,10 @@ def test_scene_contents_and_no_interpenetration():
                 d = np.linalg.norm(a.T_table_obj[:2, 3] - b.T_table_obj[:2, 3])
                 assert d > oa.footprint_radius + ob.footprint_radius
     # deterministic
-    assert get_scene("multi/05").obj_ids == get_scene.__wrapped__("multi/05").obj_ids
+    from tdof20.sim import scenes as scenes_module
+
+    assert get_scene("multi/05").obj_ids == scenes_module._get_scene.__wrapped__("multi/05", 250.0).obj_ids
+    assert get_scene("multi/00").obj_ids != get_scene("multi/01").obj_ids
 
 
 # ------------------------------------------------------------------------------- renderer

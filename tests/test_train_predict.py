@@ -1,6 +1,6 @@
 """HFF6DoF training, resume, prediction and the train -> predict -> score round trip, on CPU.
 
-One tiny simulated dataset (module fixture): single/12 (vase) in small frames (4 arm positions x 12
+One tiny simulated dataset (module fixture): single/juice_cup_340 (id 12) in small frames (4 arm positions x 12
 turntable steps of 2.5 degrees, 80x60) — its simple split has 40 train and 8 test images close to
 training views — and a few frames of multi/08 (the hard split's test scene). One short training
 (20 steps of 4 images at 32x48, in two calls, so that the second one resumes) serves every test.
@@ -41,7 +41,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def dataset(tmp_path_factory):
     base = tmp_path_factory.mktemp("hff")
     scenes = []
-    for sc, steps, deg, arms in (("single/12", 12, 2.5, 4), ("multi/08", 2, 45.0, 2)):
+    for sc, steps, deg, arms in (("single/juice_cup_340", 12, 2.5, 4), ("multi/08", 2, 45.0, 2)):
         raw = base / "raw" / sc.replace("/", "_")
         run_capture(sim_config(sc, steps=steps, step_deg=deg, n_arms=arms, width=80, height=60), raw, yes=True,
                     show_progress=False)
@@ -142,8 +142,10 @@ def test_short_training_learns(runs, dataset):
         for _, _, _, score, R, t, _ in rows:
             assert 0.0 <= score <= 1.0 and t[2] > 0
             assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) == pytest.approx(1.0)
-    print("seg IoU", iou, "images with the vase found", {k: len(v) for k, v in found.items()}, "loss", loss)
-    assert iou["trained"] > 0.35 and iou["trained"] > iou["untrained"] + 0.3
+    print("seg IoU", iou, "images with juice_cup_340 found", {k: len(v) for k, v in found.items()}, "loss", loss)
+    # (the catalog's new object 12 is smaller than the old vase: 0.26 after these 20 steps, before
+    # and after the method interface alike)
+    assert iou["trained"] > 0.2 and iou["trained"] > iou["untrained"] + 0.2
     assert len(found["trained"]) >= 0.75 * len(test) and len(found["trained"]) > len(found["untrained"])
 
 
@@ -168,3 +170,66 @@ def test_train_predict_score_round_trip(runs, dataset, tmp_path):
         assert "network_ms_per_image" in info
     with pytest.raises(TdofError, match="not an HFF6DoF run"):
         predict(tmp_path, dataset, "simple", tmp_path / "x.csv", progress=False)
+
+
+#: tiny options for the baselines' round trip (their defaults are sized for 480x640)
+BASELINES = {
+    "pvnet": {"vote_max_pixels": 50, "max_rounds": 3},
+    "densefusion": {"n_points": 64, "n_model_points": 60, "crop_size": 32, "min_points": 10},
+    "ffb6d": {"n_points": 256, "meanshift_iters": 20, "max_votes": 200},
+}
+
+
+@pytest.mark.parametrize("name", sorted(BASELINES))
+def test_every_baseline_trains_predicts_and_scores_through_the_same_loop(name, dataset, tmp_path):
+    """A run of each baseline: trained by the shared loop (2 steps), resumed, predicted from its
+    run folder alone (it knows its method), and the results scored like HFF6DoF's."""
+    import json
+
+    from tdof20.benchmark.scoring import score
+    from tdof20.methods.registry import method_names
+
+    if name not in method_names():
+        pytest.skip(f"{name} is not registered")
+    run = tmp_path / name
+    opts = {**TRAIN, "batch_size": 2}
+    train(dataset, "simple", run, method=name, method_config=BASELINES[name], max_steps=1, **opts)
+    train(dataset, "simple", run, method=name, method_config=BASELINES[name], max_steps=2, **opts)  # resumes
+    config = json.loads((run / "config.json").read_text())
+    ckpt = torch.load(run / "last.pt", map_location="cpu", weights_only=True)
+    assert config["method"] == name and ckpt["step"] == 2 and len(ckpt["history"]) == 2
+    assert config["method_config"] == {**config["method_config"], **BASELINES[name]}
+    assert config["meta"]["obj_ids"] == config["classes"] and config["image_size"] == list(TRAIN_SIZE)
+    assert config["depth_mode"] == ("none" if name == "pvnet" else "filled")
+    with pytest.raises(TdofError, match="method = .*" + name):
+        train(dataset, "simple", run, max_steps=3, **opts)                      # hff6dof on a baseline's run
+    out = predict(run, dataset, "simple", tmp_path / f"{name}.csv", device="cpu", num_workers=0, progress=False)
+    info = json.loads((tmp_path / f"{name}_info.json").read_text())
+    assert info["method"] == name and info["method_config"]["seed"] == 0 and info["images"] == \
+        len(split_images(dataset, "simple", "test"))
+    assert info["network_ms_per_image"] > 0 and info["pose_ms_per_image"] >= 0
+    s = score(out, dataset, split="simple")
+    assert 0.0 <= s["all"]["add_s"] <= 1.0
+    if name == "pvnet":
+        with pytest.raises(TdofError, match="--voting is not an option of pvnet"):
+            predict(run, dataset, "simple", tmp_path / "v.csv", voting="3d", progress=False)
+
+
+def test_options_from_a_toml_file(tmp_path):
+    from tdof20.methods.registry import get_method
+    from tdof20.methods.train import load_train_config
+
+    f = tmp_path / "pvnet.toml"
+    f.write_text('[train]\nbatch_size = 3\nimage_size = [64, 96]\n[method]\nn_hyp = 32\nclass_vectors = false\n')
+    opts, cfg = load_train_config(f, get_method("pvnet"))
+    assert opts.batch_size == 3 and opts.image_size == (64, 96) and opts.epochs == 20
+    assert cfg.n_hyp == 32 and cfg.class_vectors is False and cfg.inlier_cos == 0.99
+    f.write_text("[method]\nfuse_stages = 2\n")
+    with pytest.raises(TdofError, match="pvnet.toml.*fuse_stages"):
+        load_train_config(f, get_method("pvnet"))
+    f.write_text("[trian]\nbatch_size = 3\n")
+    with pytest.raises(TdofError, match="pvnet.toml.*unknown table"):
+        load_train_config(f, get_method("pvnet"))
+    f.write_text("[train\n")
+    with pytest.raises(TdofError, match="not valid TOML"):
+        load_train_config(f, get_method("hff6dof"))

@@ -65,6 +65,10 @@ class ReconstructionConfig:
     min_weight: float = 2.0           # a surface voxel must be seen by this many frames
     block_count: int = 40000          # hash-map capacity of the TSDF grid
     min_cluster_points: int = 300     # smaller clusters are noise
+    floating_mm: float = 15.0         # a cluster whose lowest point is higher above the table than
+                                      # this is a piece of an object (objects stand on the table) ...
+    floating_join_mm: float = 60.0    # ... and joins the standing cluster nearest to it across the
+                                      # table, if one is within this (horizontal distance)
     plane_iters: int = 1000           # RANSAC hypotheses per plane
     seed: int = 0                     # of the RANSAC samples (the least-squares refinement all but
                                       # removes their effect)
@@ -73,8 +77,8 @@ class ReconstructionConfig:
         check_ranges(self, "reconstruct", positive=("voxel_mm", "sdf_trunc_mm", "depth_max_mm", "plane_dist_mm",
                                                     "crop_radius_mm", "cluster_eps_mm", "cluster_min_points",
                                                     "min_weight", "block_count", "min_cluster_points",
-                                                    "plane_iters"),
-                     non_negative=("above_table_mm", "seed"))
+                                                    "plane_iters", "floating_mm"),
+                     non_negative=("above_table_mm", "seed", "floating_join_mm"))
 
 
 @dataclass
@@ -211,5 +215,82 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
             sel = labels == lab
             if sel.sum() >= cfg.min_cluster_points:
                 clusters.append((cand[sel], cand_n[sel]))  # (in the canonical order of cand)
+        clusters = join_floating(clusters, plane, cfg)
         clusters.sort(key=lambda cn: (-len(cn[0]), *cn[0].mean(axis=0).tolist()))
     return Reconstruction(pts, plane, [c for c, _ in clusters], mesh, [n for _, n in clusters])
+
+
+def join_floating(clusters: list[tuple[np.ndarray, np.ndarray]], plane: np.ndarray,
+                  cfg: ReconstructionConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Join the pieces of one object that the fusion left apart.
+
+    Objects stand on the turntable apart from each other, so their footprints on the table do not
+    overlap. A reconstruction from few turntable steps can cut one object into pieces farther
+    apart than ``cluster_eps_mm``: the near outer wall of a cup, its far inner wall seen over the
+    rim, its inner bottom; or a goblet's bowl above a stem the fusion lost. Left alone, a piece is
+    matched to the object as if it were the whole object and the fit slides along the object's
+    axis. Two rules, largest cluster first:
+
+    * a cluster whose centre, seen from above, lies inside the footprint of a larger cluster (a
+      circle fitted to that cluster's points seen from above, when they bend round enough to fix
+      one: radius at most 0.6 of their extent) joins it;
+    * a cluster whose lowest point lies more than ``floating_mm`` above the table joins the
+      standing cluster nearest to it across the table, if within ``floating_join_mm``.
+
+    (points, normals) pairs in, the same out (joined ones concatenated, in the input order)."""
+    from scipy.spatial import cKDTree
+
+    if len(clusters) < 2:
+        return clusters
+    n = plane[:3] / np.linalg.norm(plane[:3])
+    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    flat = [np.stack([c @ e1, c @ e2], axis=1) for c, _ in clusters]   # seen from above, (N,2) mm
+    low = [float(plane_distance(c, plane).min()) for c, _ in clusters]
+    parent = list(range(len(clusters)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    circles = [_footprint_circle(f) for f in flat]
+    rank = sorted(range(len(clusters)), key=lambda k: (-len(clusters[k][0]), k))  # largest first (DBSCAN's
+    for r, i in enumerate(rank):                                                   # labels are in no size order)
+        ci = flat[i].mean(axis=0)
+        for j in rank[:r]:
+            if circles[j] is not None and np.linalg.norm(ci - circles[j][0]) < circles[j][1]:
+                parent[root(i)] = root(j)
+                break
+    standing = [i for i, h in enumerate(low) if h <= cfg.floating_mm]
+    trees = {i: cKDTree(flat[i]) for i in standing}
+    for i, h in enumerate(low):
+        if h <= cfg.floating_mm or not standing or root(i) != i:
+            continue
+        dist = {j: float(trees[j].query(flat[i], k=1)[0].min()) for j in standing}
+        j = min(dist, key=lambda k: (dist[k], k))
+        if dist[j] <= cfg.floating_join_mm:
+            parent[root(i)] = root(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(clusters)):
+        groups.setdefault(root(i), []).append(i)
+    return [(np.concatenate([clusters[k][0] for k in ks]), np.concatenate([clusters[k][1] for k in ks]))
+            for ks in groups.values()]
+
+
+def _footprint_circle(xy: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(centre (2,), radius) of a least-squares circle through points seen from above, or None
+    when they do not bend round enough to fix one (radius > 0.6 of their extent)."""
+    if len(xy) < 10:
+        return None
+    m = xy.mean(axis=0)
+    q = xy - m
+    A = np.c_[2 * q, np.ones(len(q))]
+    sol, *_ = np.linalg.lstsq(A, (q ** 2).sum(axis=1), rcond=None)
+    r2 = sol[2] + sol[0] ** 2 + sol[1] ** 2
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    r = float(np.sqrt(r2))
+    extent = float(np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2][0]))   # along the main direction
+    return (m + sol[:2], r) if r <= 0.6 * extent else None

@@ -1,6 +1,6 @@
 """Assemble annotated scenes into one BOP dataset with the paper's two protocols.
 
-    ROOT/dataset_info.json        {"name", "scenes": {"<scene_id>": "single/01", ...}, "splits": ...}
+    ROOT/dataset_info.json        {"name", "scenes": {"<scene_id>": "single/cube_136", ...}, "splits": ...}
     ROOT/camera.json              BOP camera file (cx, cy, fx, fy, width, height, depth_scale)
     ROOT/models/                  obj_000001.ply ... + models_info.json (one model per object)
     ROOT/models_eval/             when the scenes bring one
@@ -253,7 +253,7 @@ def build_dataset(scene_dirs: list[str | Path], out: str | Path, show_progress: 
                                          "depth_scale": float(first.depth_scale(im0))})
         info_all = {"name": "tdof20", "format": "bop", "scenes": {}, "layout": {}}
     for sid, (info, _) in new.items():
-        info_all["scenes"][str(sid)] = info["scene_id"]
+        info_all["scenes"][str(sid)] = scene_name(scene_number(info["scene_id"]))  # aliases -> names
         info_all["layout"][str(sid)] = {"n_arms": info["n_arms"], "steps": info["steps"]}
     order = sorted(info_all["scenes"], key=int)
     info_all["scenes"] = {k: info_all["scenes"][k] for k in order}

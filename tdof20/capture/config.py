@@ -139,12 +139,17 @@ def load_config(path: str | Path) -> CaptureConfig:
 def validate(cfg: CaptureConfig) -> CaptureConfig:
     """Everything that can be checked without hardware (workspace limits: see plan.check_workspace)."""
     src = cfg.source
-    from tdof20.sim.scenes import SCENE_RE
+    from tdof20.errors import TdofError
+    from tdof20.sim.scenes import VALID_FORMS, normalize_scene_id
 
     s = cfg.session
-    m = SCENE_RE.match(s.scene_id)
-    if not m or not 1 <= int(m.group(2)) <= 20:
-        _fail(src, "session.scene_id", f"'{s.scene_id}' is not a scene name (single/01..20 or multi/01..20)")
+    try:
+        scene_name = normalize_scene_id(s.scene_id)
+    except TdofError:
+        _fail(src, "session.scene_id", f"'{s.scene_id}' is not a scene name ({VALID_FORMS})")
+    if scene_name != s.scene_id:  # the alias single/NN -> single/<class name>
+        s = dataclasses.replace(s, scene_id=scene_name)
+        cfg = dataclasses.replace(cfg, session=s)
     if not s.phases or any(p not in PHASES for p in s.phases) or len(set(s.phases)) != len(s.phases):
         _fail(src, "session.phases", f"must be distinct phases from {list(PHASES)}, got {list(s.phases)}")
     for i, o in enumerate(s.objects):

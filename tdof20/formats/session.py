@@ -46,7 +46,8 @@ JOURNAL_FILE = "journal.jsonl"
 TRUTH_DIR = "truth"
 PHASES = ("transparent", "opaque")
 N_JOINTS = 6
-SCENE_ID_RE = re.compile(r"^(single|multi)/(0[1-9]|1[0-9]|20)$")
+# single/<class name> (single/NN, NN = the object id 01..20, is an alias) or multi/00..multi/19
+SCENE_ID_RE = re.compile(r"^(single/([a-z][a-z0-9_]*|0[1-9]|1[0-9]|20)|multi/[01][0-9])$")
 OBJ_ID_RANGE = (1, 20)
 RIGID_TOL = 1e-4
 METRES_THRESHOLD_MM = 5.0  # a T_base_tcp translation shorter than this looks like metres
@@ -317,7 +318,8 @@ class SessionInfo:
 
         scene_id = c.string(c.get(d, "scene_id", ""), "scene_id")
         if not SCENE_ID_RE.match(scene_id):
-            c.fail(f"scene_id must look like 'single/NN' or 'multi/NN' with NN in 01..20, got {scene_id!r}")
+            c.fail(f"scene_id must look like 'single/<class name>', 'single/NN' (NN = object id 01..20) or "
+                   f"'multi/NN' (NN in 00..19), got {scene_id!r}")
 
         objects = c.get(d, "objects", "")
         if not isinstance(objects, list) or not objects:

@@ -1,4 +1,4 @@
-"""The 20-object catalog of transparent objects: procedural watertight meshes in millimetres."""
+"""TDoF20's 20 object classes: procedural watertight meshes in millimetres."""
 
 from tdof20.objects.catalog import (
     ObjectModel,
@@ -6,7 +6,10 @@ from tdof20.objects.catalog import (
     export_models,
     get_object,
     object_by_name,
+    object_id_by_name,
     object_ids,
+    object_names,
 )
 
-__all__ = ["ObjectModel", "all_objects", "export_models", "get_object", "object_by_name", "object_ids"]
+__all__ = ["ObjectModel", "all_objects", "export_models", "get_object", "object_by_name", "object_id_by_name",
+           "object_ids", "object_names"]

@@ -1,9 +1,13 @@
-"""The 20 transparent objects of the TDoF20-style catalog: procedural watertight meshes in mm.
+"""TDoF20's 20 transparent object classes: procedural watertight meshes in mm.
+
+Ids 1..20 follow the release's class list (cube_136 ... whisky_cup_270); the number at the end of
+a name is the capacity in ml, and each mesh is sized so that its cavity holds that much filled to
+the brim (:attr:`ObjectModel.capacity_ml`, within a few per cent).
 
 Model frame: millimetres, z up; every object stands upright on its base (opening up). For a
-rotationally symmetric object the symmetry axis is the z axis; every object's body axis is the
-z axis and the origin lies on it at the mid-height of the bounding box in z. Spouts point
-towards +x, handles towards -x; the flat face of ``flask_flat_face`` faces +x.
+symmetric object the symmetry axis is the z axis; every object's body axis is the z axis and
+the origin lies on it at the mid-height of the bounding box in z. Handles point towards -x; the
+long side of a cuboid's section runs along x.
 
 Each builder below returns a closed, consistently wound mesh with walls of real glass
 thickness; :func:`get_object` adds the derived data (diameter, symmetries, keypoints) and
@@ -48,6 +52,17 @@ class ObjectModel:
     symmetries_continuous: tuple  # ({"axis": [0,0,1], "offset": [0,0,0]},) or ()
     symmetries_discrete: tuple  # tuple of (4,4) transforms (identity excluded) or ()
     keypoints: np.ndarray  # (9,3): bbox centre, then 8 farthest-point surface samples
+
+    @property
+    def nominal_capacity_ml(self) -> int:
+        """The capacity the name states (the number at its end, in ml)."""
+        return int(self.name.rsplit("_", 1)[1])
+
+    @functools.cached_property
+    def capacity_ml(self) -> float:
+        """The volume the cup holds filled to the brim, in ml, measured on the mesh
+        (:func:`cavity_volume`; computed once per object, ~0.1 s)."""
+        return cavity_volume(self.vertices, self.faces) / 1000.0
 
     @property
     def symmetric(self) -> bool:
@@ -114,6 +129,43 @@ def max_pairwise_distance(points: np.ndarray, chunk: int = 1024) -> float:
     return best
 
 
+def cavity_volume(vertices: np.ndarray, faces: np.ndarray, step: float = 1.5, seed: int = 0) -> float:
+    """Volume (mm^3) of the open cavity of a vessel up to the top of its rim, sampled with one
+    jittered point per cell of a grid of ``step`` mm (about 1 % accurate at 1.5 mm).
+
+    A grid point belongs to the cavity when it lies outside the glass and the rays from it along
+    +x, -x, +y, -y and -z all meet the mesh from outside (the first triangle hit faces the point):
+    air walled in on every side but the top. Air around a stem, under a flaring bowl or inside a
+    handle's loop escapes sideways and is not counted. Needs a closed mesh with outward normals.
+    """
+    from tdof20.o3d import o3d
+
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    n = np.maximum(np.ceil((hi - lo) / step).astype(int), 1)
+    cell = (hi - lo) / n  # cells of about ``step`` that tile the bounding box exactly
+    idx = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), axis=-1).reshape(-1, 3)
+    # one point per cell, jittered (fixed seed): no aliasing with walls parallel to the grid
+    pts = (lo + (idx + np.random.default_rng(seed).uniform(0.0, 1.0, idx.shape)) * cell).astype(np.float32)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    tri = V[F]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inside = np.ones(len(pts), dtype=bool)
+    for d in ([1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]):
+        keep = np.flatnonzero(inside)
+        if len(keep) == 0:
+            break
+        dirs = np.broadcast_to(np.asarray(d, np.float32), (len(keep), 3))
+        hit = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(np.concatenate([pts[keep], dirs], axis=1))))
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        ok = prim != scene.INVALID_ID
+        ok[ok] = normals[prim[ok]] @ np.asarray(d, np.float64) < 0  # met from outside the glass
+        inside[keep[~ok]] = False
+    return float(inside.sum()) * float(np.prod(cell))
+
+
 def mesh_diameter(vertices: np.ndarray) -> float:
     """Exact diameter: the farthest pair of vertices lies on the convex hull."""
     V = np.asarray(vertices, dtype=np.float64)
@@ -127,118 +179,36 @@ def mesh_diameter(vertices: np.ndarray) -> float:
 Mesh = tuple[np.ndarray, np.ndarray] | trimesh.Trimesh
 
 
-def _tumbler() -> Mesh:
-    outer = S.join(S.base_with_fillet(33.0, 4.0, n_fillet=7),
-                   S.wall_curve([[33.0, 4.0], [35.2, 50.0], [37.5, 95.0]], 10))
-    return S.revolve(S.vessel_profile(outer, wall=2.5, floor_z=9.0), 64)
+def _tumbler(r_base: float, r_top: float, height: float, wall: float, floor: float, fillet: float = 4.0,
+             belly: float = 0.0) -> Mesh:
+    """A round tumbler: straight or slightly tapered wall (``belly`` bulges it at mid-height)."""
+    mid = 0.5 * (r_base + r_top) + belly
+    outer = S.join(S.base_with_fillet(r_base, fillet, n_fillet=6),
+                   S.wall_curve([[r_base, fillet], [mid, 0.5 * (fillet + height)], [r_top, height]], 10))
+    return S.revolve(S.vessel_profile(outer, wall=wall, floor_z=floor), 64)
 
 
-def _highball_glass() -> Mesh:
-    outer = S.join(S.base_with_fillet(31.0, 3.0, n_fillet=6),
-                   S.wall_curve([[31.0, 3.0], [31.8, 75.0], [32.5, 150.0]], 12))
-    return S.revolve(S.vessel_profile(outer, wall=2.2, floor_z=12.0), 64)
+def _goblet(bowl_r: float, bowl_depth: float, stem_h: float, foot_r: float, wall: float = 2.0) -> Mesh:
+    """A bowl on a stem and a round foot."""
+    zb, R, D = stem_h, bowl_r, bowl_depth
+    foot = S.join([[0.0, 0.0]], S.arc((foot_r, 1.5), 1.5, -90.0, 90.0, 7))
+    stem = [[foot_r, 3.0], [0.55 * foot_r, 4.6], [9.0, 7.0], [5.0, 12.0], [4.5, 18.0], [4.5, zb - 10.0]]
+    bowl = [[6.5, zb], [0.5 * R, zb + 0.1 * D], [0.85 * R, zb + 0.3 * D], [R, zb + 0.6 * D],
+            [0.94 * R, zb + D]]
+    outer = S.join(foot, S.wall_curve(stem + bowl, 50))
+    inner_src = S.join([[0.0, zb]], S.wall_curve(bowl, 30))
+    return S.revolve(S.vessel_profile(outer, wall=wall, floor_z=zb + 8.0, inner_from=inner_src), 64)
 
 
-def _wine_glass() -> Mesh:
-    foot = S.join([[0.0, 0.0]], S.arc((36.0, 1.5), 1.5, -90.0, 90.0, 7))
-    body = S.wall_curve([[36.0, 3.0], [20.0, 4.6], [9.0, 7.0], [5.0, 12.0], [4.0, 20.0], [4.0, 76.0],
-                         [6.0, 84.0], [15.0, 92.0], [29.0, 104.0], [38.5, 124.0], [41.0, 145.0],
-                         [39.5, 170.0], [35.5, 198.0]], 50)
-    outer = S.join(foot, body)
-    bowl = S.wall_curve([[6.0, 84.0], [15.0, 92.0], [29.0, 104.0], [38.5, 124.0], [41.0, 145.0],
-                         [39.5, 170.0], [35.5, 198.0]], 30)
-    bowl = S.join([[0.0, 84.0]], bowl)
-    return S.revolve(S.vessel_profile(outer, wall=2.0, floor_z=93.0, inner_from=bowl), 64)
-
-
-def _shot_glass() -> Mesh:
-    outer = S.join(S.base_with_fillet(21.5, 2.5, n_fillet=6),
-                   S.wall_curve([[21.5, 2.5], [25.0, 60.0]], 6))
-    return S.revolve(S.vessel_profile(outer, wall=3.0, floor_z=16.0), 64)
-
-
-def _beaker_with_spout() -> Mesh:
-    outer = S.join(S.base_with_fillet(35.0, 3.0, n_fillet=6),
-                   S.wall_curve([[35.0, 3.0], [35.0, 68.0]], 3),
-                   S.wall_curve([[35.0, 68.0], [35.0, 90.0], [36.8, 95.0]], 14, bend_weight=0.5))
-    v, f = S.revolve(S.vessel_profile(outer, wall=1.8, floor_z=2.6), 96)
-    v = S.deform_radial(v, S.spout_bump(7.0, 13.0, 72.0, 95.0))
-    return v, f
-
-
-def _erlenmeyer_flask() -> Mesh:
-    base = S.base_with_fillet(42.5, 7.0, n_fillet=7, wall_angle_deg=105.0)
-    p = base[-1]
-    body = [[p[0], p[1]], [33.0, 40.0], [20.5, 90.0], [17.5, 100.0], [17.0, 108.0]]
-    outer = S.join(base, S.wall_curve(body + [[17.0, 139.0], [18.6, 141.0], [18.6, 145.0]], 34))
-    inner_src = S.join(base, S.wall_curve(body + [[17.0, 145.0]], 30))
-    return S.revolve(S.vessel_profile(outer, wall=2.0, floor_z=3.2, inner_from=inner_src), 64)
-
-
-def _round_bottom_flask() -> Mesh:
-    R, r_base = 42.5, 15.0
-    zc = float(np.sqrt(R * R - r_base * r_base))
-    a0 = float(np.degrees(np.arctan2(-zc, r_base)))
-    sphere = S.arc((0.0, zc), R, a0, 58.0, 26)
-    p = sphere[-1]
-    neck = [[p[0], p[1]], [17.0, zc + R - 2.0], [14.5, zc + R + 7.0], [14.0, zc + R + 14.0]]
-    top = zc + R + 62.0
-    outer = S.join([[0.0, 0.0]], sphere,
-                   S.wall_curve(neck + [[14.0, top - 6.0], [15.6, top - 4.0], [15.6, top]], 18))
-    inner_src = S.join([[0.0, 0.0]], sphere, S.wall_curve(neck + [[14.0, top]], 14))
-    return S.revolve(S.vessel_profile(outer, wall=2.0, floor_z=3.0, inner_from=inner_src), 64)
-
-
-def _water_bottle() -> Mesh:
-    body = [[33.0, 5.0], [33.0, 150.0], [31.0, 165.0], [22.0, 185.0], [15.0, 199.0], [13.5, 207.0]]
-    outer = S.join(S.base_with_fillet(33.0, 5.0, n_fillet=7),
-                   S.wall_curve(body + [[13.5, 216.0], [15.6, 218.0], [15.6, 225.0], [14.6, 228.0]], 40))
-    inner_src = S.join(S.base_with_fillet(33.0, 5.0, n_fillet=7), S.wall_curve(body + [[13.5, 228.0]], 34))
-    return S.revolve(S.vessel_profile(outer, wall=3.0, floor_z=6.0, inner_from=inner_src), 64)
-
-
-def _wine_bottle() -> Mesh:
-    punt = S.bezier([[0.0, 22.0], [15.0, 22.0], [24.0, 0.0], [31.0, 0.0]], 12)
-    heel = S.bezier([[31.0, 0.0], [36.0, 0.0], [38.0, 3.0], [38.0, 12.0]], 8)
-    body = [[38.0, 12.0], [38.0, 190.0], [36.0, 214.0], [26.0, 240.0], [17.0, 257.0], [14.5, 268.0]]
-    outer = S.join(punt, heel, S.wall_curve(body + [[14.5, 287.0], [16.2, 289.0], [16.2, 296.0],
-                                                    [15.2, 298.0]], 29))
-    inner_src = S.join(punt, heel, S.wall_curve(body + [[14.5, 298.0]], 26))
-    return S.revolve(S.vessel_profile(outer, wall=3.5, inner_from=inner_src), 64)
-
-
-def _bowl() -> Mesh:
-    base = S.base_with_fillet(46.0, 10.0, n_fillet=6, wall_angle_deg=45.0)
-    p = base[-1]
-    outer = S.join(base, S.wall_curve([[p[0], p[1]], [55.0, 11.0], [66.0, 25.0], [72.5, 45.0], [75.0, 68.0]], 18))
-    return S.revolve(S.vessel_profile(outer, wall=4.0, floor_z=6.0), 64)
-
-
-def _graduated_cylinder() -> Mesh:
-    foot_profile = np.array([[0.0, 0.0], [34.0, 0.0], [34.0, 8.0], [32.0, 10.0], [0.0, 10.0]])
-    foot = S.loft(foot_profile, S.polygon_section(6, corner_radius=0.08, corner_points=4, edge_points=2))
-    outer = S.join(S.base_with_fillet(14.0, 2.0, z0=4.0, n_fillet=5),
-                   S.wall_curve([[14.0, 6.0], [14.0, 228.0]], 4),
-                   S.wall_curve([[14.0, 228.0], [14.0, 246.0], [15.6, 250.0]], 12, bend_weight=0.5))
-    tube_v, tube_f = S.revolve(S.vessel_profile(outer, wall=1.8, floor_z=13.0), 96)
-    tube_v = S.deform_radial(tube_v, S.spout_bump(8.0, 14.0, 232.0, 250.0))
-    return S.union(foot, (tube_v, tube_f))
-
-
-def _vase() -> Mesh:
-    outer = S.join(S.base_with_fillet(38.0, 6.0, n_fillet=6),
-                   S.wall_curve([[38.0, 6.0], [50.0, 28.0], [63.0, 68.0], [60.0, 108.0], [41.0, 148.0],
-                                 [27.5, 172.0], [28.5, 186.0], [34.0, 200.0]], 40))
-    return S.revolve(S.vessel_profile(outer, wall=3.5, floor_z=10.0), 64)
-
-
-def _jar() -> Mesh:
-    body = [[44.0, 6.0], [45.0, 84.0], [42.5, 93.0], [40.0, 98.0]]
-    outer = S.join(S.base_with_fillet(44.0, 6.0, n_fillet=7),
-                   S.wall_curve(body + [[40.0, 100.0], [42.0, 102.5], [42.0, 106.0], [40.5, 108.0],
-                                        [40.0, 112.0]], 28))
-    inner_src = S.join(S.base_with_fillet(44.0, 6.0, n_fillet=7), S.wall_curve(body + [[40.0, 112.0]], 20))
-    return S.revolve(S.vessel_profile(outer, wall=3.0, floor_z=6.0, inner_from=inner_src), 64)
+def _icecream_cup(rim_r: float, bowl_depth: float, stem_h: float, foot_r: float, wall: float = 2.5) -> Mesh:
+    """A wide bowl flaring out to its rim, on a short stem and a round foot."""
+    zb, R, D = stem_h, rim_r, bowl_depth
+    foot = S.join([[0.0, 0.0]], S.arc((foot_r, 2.0), 2.0, -90.0, 90.0, 7))
+    stem = [[foot_r, 4.0], [0.6 * foot_r, 5.5], [10.0, 8.0], [8.5, 12.0], [8.5, zb - 4.0]]
+    bowl = [[11.0, zb], [0.55 * R, zb + 0.18 * D], [0.82 * R, zb + 0.5 * D], [R, zb + D]]
+    outer = S.join(foot, S.wall_curve(stem + bowl, 40))
+    inner_src = S.join([[0.0, zb]], S.wall_curve(bowl, 24))
+    return S.revolve(S.vessel_profile(outer, wall=wall, floor_z=zb + 6.0, inner_from=inner_src), 64)
 
 
 def _handle(outer: np.ndarray, wall: float, z_top: float, z_bottom: float, reach: float,
@@ -248,101 +218,35 @@ def _handle(outer: np.ndarray, wall: float, z_top: float, z_bottom: float, reach
     return S.tube(path, thickness / 2, 18, radius_b=width / 2, up=(0.0, 1.0, 0.0))
 
 
-def _measuring_cup() -> Mesh:
-    outer = S.join(S.base_with_fillet(40.0, 5.0, n_fillet=6),
-                   S.wall_curve([[40.0, 5.0], [42.0, 45.0], [43.5, 75.0]], 4),
-                   S.wall_curve([[43.5, 75.0], [45.0, 100.0]], 12, bend_weight=0.0))
-    wall = 3.5
-    v, f = S.revolve(S.vessel_profile(outer, wall=wall, floor_z=5.0), 96)
-    v = S.deform_radial(v, S.spout_bump(10.0, 15.0, 76.0, 100.0))
-    handle = _handle(outer, wall, 86.0, 30.0, 36.0, width=16.0, thickness=10.0)
-    return S.union((v, f), handle)
-
-
-def _mug() -> Mesh:
-    outer = S.join(S.base_with_fillet(41.0, 5.0, n_fillet=6), S.wall_curve([[41.0, 5.0], [41.0, 98.0]], 6))
-    wall = 3.5
-    body = S.revolve(S.vessel_profile(outer, wall=wall, floor_z=9.0), 64)
-    handle = _handle(outer, wall, 80.0, 24.0, 34.0, width=14.0, thickness=10.0)
+def _handle_cup(r_base: float, r_top: float, height: float, wall: float = 3.5, floor: float = 8.0,
+                reach: float = 32.0, belly: float = 0.0) -> Mesh:
+    """A mug: a round body with a C-shaped handle towards -x."""
+    mid = 0.5 * (r_base + r_top) + belly
+    outer = S.join(S.base_with_fillet(r_base, 5.0, n_fillet=6),
+                   S.wall_curve([[r_base, 5.0], [mid, 0.5 * (5.0 + height)], [r_top, height]], 8))
+    body = S.revolve(S.vessel_profile(outer, wall=wall, floor_z=floor), 64)
+    handle = _handle(outer, wall, height - 0.2 * height, 0.25 * height, reach, width=14.0, thickness=10.0)
     return S.union(body, handle)
 
 
-def _pitcher() -> Mesh:
-    outer = S.join(S.base_with_fillet(50.0, 8.0, n_fillet=6),
-                   S.wall_curve([[50.0, 8.0], [57.5, 40.0], [60.0, 80.0], [55.5, 150.0], [50.5, 178.0]], 14),
-                   S.wall_curve([[50.5, 178.0], [51.0, 195.0], [54.0, 220.0]], 14, bend_weight=0.3))
-    wall = 3.5
-    v, f = S.revolve(S.vessel_profile(outer, wall=wall, floor_z=8.0), 80)
-    v = S.deform_radial(v, S.spout_bump(18.0, 17.0, 176.0, 220.0))
-    handle = _handle(outer, wall, 196.0, 80.0, 42.0, width=20.0, thickness=12.0)
-    return S.union((v, f), handle)
+def _box_glass(half_x: float, half_y: float, height: float, wall: float = 3.0, floor: float = 8.0,
+               corner: float = 7.0) -> Mesh:
+    """A glass with a rounded-rectangle (or rounded-square) section, straight walls, flat rim."""
+    outer = S.rounded_rect_section(half_x, half_y, corner, corner_points=7, edge_points=2)
+    inner = S.rounded_rect_section(half_x - wall, half_y - wall, corner - wall, corner_points=7, edge_points=2)
+    return S.prism_vessel(outer, inner, height, floor, fillet=4.0, inner_fillet=3.0)
 
 
-def _square_vase() -> Mesh:
-    outer = S.join(S.base_with_fillet(35.0, 4.0, n_fillet=5),
-                   S.wall_curve([[35.0, 4.0], [37.0, 100.0], [40.0, 200.0]], 10))
-    section = S.polygon_section(4, corner_radius=0.15, corner_points=6, edge_points=4)
-    return S.loft(S.vessel_profile(outer, wall=4.0, floor_z=12.0), section)
-
-
-def _hexagonal_glass() -> Mesh:
-    outer = S.join(S.base_with_fillet(33.0, 3.0, n_fillet=5),
-                   S.wall_curve([[33.0, 3.0], [34.5, 50.0], [36.0, 100.0]], 8))
-    section = S.polygon_section(6, corner_radius=0.08, corner_points=4, edge_points=3)
-    return S.loft(S.vessel_profile(outer, wall=3.0, floor_z=12.0), section)
-
-
-def _flask_flat_face() -> Mesh:
-    base = S.base_with_fillet(45.0, 6.0, n_fillet=7)
-    body = [[45.0, 6.0], [45.0, 118.0], [41.0, 138.0], [27.0, 154.0], [15.0, 164.0], [13.0, 172.0]]
-    outer = S.join(base, S.wall_curve(body + [[13.0, 186.0], [14.8, 188.0], [14.8, 193.0],
-                                              [14.0, 195.0]], 38))
-    inner_src = S.join(base, S.wall_curve(body + [[13.0, 195.0]], 32))
-    wall, flat_x = 3.0, 27.0
-    shell = S.revolve(S.vessel_profile(outer, wall=wall, floor_z=5.0, inner_from=inner_src), 64)
-    # fill the cavity beyond the inner flat face, bounded by the mid-wall surface (inside the glass)
-    mid = S.closed_solid_profile(S.offset_curve(inner_src, wall / 2))
-    fill = S.intersection(S.revolve(mid, 64), S.box([flat_x - wall, -100.0, -10.0], [100.0, 100.0, 300.0]))
-    body_mesh = S.union(shell, fill)
-    return S.intersection(body_mesh, S.box([-100.0, -100.0, -10.0], [flat_x, 100.0, 300.0]))
-
-
-def _teapot() -> Mesh:
-    wall = 3.5
-    base = S.base_with_fillet(40.0, 6.0, n_fillet=6)
-    body = S.wall_curve([[40.0, 6.0], [53.0, 22.0], [61.0, 45.0], [59.0, 75.0], [49.0, 98.0], [39.0, 110.0]], 18)
-    flange = np.array([[40.5, 110.5], [41.5, 111.5], [41.5, 113.0]])
-    dome_full = S.bezier([[41.5, 113.0], [36.0, 123.0], [18.0, 129.5], [0.0, 129.5]], 16)
-    dome = dome_full[dome_full[:, 0] > 6.5]
-    knob = S.arc((0.0, 139.0), 10.0, -53.0, 90.0, 10)
-    knob[-1, 0] = 0.0
-    outer_solid = S.join(base, body, flange, dome, knob)
-    inner_src = S.join(base, body, S.bezier([[39.0, 110.0], [33.0, 121.0], [16.0, 127.0], [0.0, 127.0]], 14))
-    cavity = S.offset_curve(inner_src, wall)
-    cavity = S.truncate_from_floor(cavity, 6.0)
-    cavity[-1, 0] = 0.0
-    ov, of = S.revolve(outer_solid, 56)
-    cv, cf = S.revolve(cavity, 56)
-    hollow = (np.concatenate([ov, cv]), np.concatenate([of, cf[:, ::-1] + len(ov)]))
-    # spout: a tapered tube leaving the wall at z = 40 towards +x, with a bore into the cavity
-    r_mid = S.radius_at(body, 40.0) - wall / 2
-    start = np.array([r_mid, 40.0])
-    curve = S.bezier([[r_mid + 6.0, 40.0], [r_mid + 26.0, 40.0], [r_mid + 38.0, 80.0], [r_mid + 58.0, 112.0]], 22)
-    uz = S.join([start], curve)
-    path = np.stack([uz[:, 0], np.zeros(len(uz)), uz[:, 1]], axis=1)
-    radii = np.interp(np.arange(len(path)), [0, len(path) - 1], [11.0, 6.0])
-    spout = S.tube(path, radii, 16)
-    tip_dir = path[-1] - path[-2]
-    tip_dir /= np.linalg.norm(tip_dir)
-    bore_path = np.concatenate([[[r_mid - 12.0, 0.0, 40.0]], path, [path[-1] + 6.0 * tip_dir]])
-    bore_r = np.concatenate([[radii[0] - 2.5], radii - 2.5, [radii[-1] - 2.5]])
-    bore = S.tube(bore_path, bore_r, 16)
-    handle = _handle(body, wall, 100.0, 36.0, 38.0, width=18.0, thickness=11.0)
-    return S.difference(S.union(hollow, spout, handle), bore)
+def _quartet_cup(r_base: float, r_top: float, height: float, wall: float = 2.5, floor: float = 7.0,
+                 lobes: float = 0.1) -> Mesh:
+    """A small cup of four-lobed (quatrefoil) section, slightly flaring."""
+    outer = S.join(S.base_with_fillet(r_base, 3.5, n_fillet=6),
+                   S.wall_curve([[r_base, 3.5], [0.5 * (r_base + r_top), 0.5 * (3.5 + height)], [r_top, height]], 8))
+    return S.loft(S.vessel_profile(outer, wall=wall, floor_z=floor), S.lobed_section(4, lobes, 16))
 
 
 # ------------------------------------------------------------------------------------------
-# The table (ids fixed)
+# The table (ids fixed: TDoF20's classes in its order; the number in a name is the capacity in ml)
 # ------------------------------------------------------------------------------------------
 CONT = "continuous"
 
@@ -355,27 +259,51 @@ class _Spec:
     symmetry: str | int | None  # "continuous", n (discrete n-fold about z) or None
 
 
+def _spec(name: str, kind: str, builder: Callable[..., Mesh], symmetry, **dims) -> _Spec:
+    return _Spec(name, kind, functools.partial(builder, **dims), symmetry)
+
+
 _TABLE: dict[int, _Spec] = {
-    1: _Spec("tumbler", "tumbler", _tumbler, CONT),
-    2: _Spec("highball_glass", "highball glass", _highball_glass, CONT),
-    3: _Spec("wine_glass", "wine glass (stem and foot)", _wine_glass, CONT),
-    4: _Spec("shot_glass", "shot glass (thick base)", _shot_glass, CONT),
-    5: _Spec("beaker_with_spout", "lab beaker with a pouring spout", _beaker_with_spout, None),
-    6: _Spec("erlenmeyer_flask", "Erlenmeyer flask", _erlenmeyer_flask, CONT),
-    7: _Spec("round_bottom_flask", "round-bottom flask (small flat base)", _round_bottom_flask, CONT),
-    8: _Spec("water_bottle", "water bottle (neck and lip)", _water_bottle, CONT),
-    9: _Spec("wine_bottle", "wine bottle (punt, neck, string ring)", _wine_bottle, CONT),
-    10: _Spec("bowl", "bowl", _bowl, CONT),
-    11: _Spec("graduated_cylinder", "graduated cylinder (spout, hexagonal foot)", _graduated_cylinder, None),
-    12: _Spec("vase", "bulbous vase", _vase, CONT),
-    13: _Spec("jar", "jar with a lip", _jar, CONT),
-    14: _Spec("measuring_cup", "measuring cup (handle and spout)", _measuring_cup, None),
-    15: _Spec("mug", "mug (handle)", _mug, None),
-    16: _Spec("pitcher", "pitcher (spout and handle)", _pitcher, None),
-    17: _Spec("square_vase", "square vase (square cavity)", _square_vase, 4),
-    18: _Spec("hexagonal_glass", "hexagonal glass", _hexagonal_glass, 6),
-    19: _Spec("flask_flat_face", "flask with one flat face (D-shaped section)", _flask_flat_face, None),
-    20: _Spec("teapot", "glass teapot (spout, handle, lid knob)", _teapot, None),
+    1: _spec("cube_136", "cube glass (square section, rounded edges)", _box_glass, 4,
+             half_x=29.0, half_y=29.0, height=58.6),
+    2: _spec("cube_166", "cube glass (square section, rounded edges)", _box_glass, 4,
+             half_x=31.0, half_y=31.0, height=61.2),
+    3: _spec("cube_216", "cube glass (square section, rounded edges)", _box_glass, 4,
+             half_x=33.5, half_y=33.5, height=66.3),
+    4: _spec("cuboid_210", "cuboid glass (rectangular section)", _box_glass, 2,
+             half_x=36.0, half_y=25.0, height=80.8),
+    5: _spec("cuboid_330", "cuboid glass (rectangular section)", _box_glass, 2,
+             half_x=38.0, half_y=27.0, height=106.7),
+    6: _spec("goblet_180", "goblet (bowl on a stem and foot)", _goblet, CONT,
+             bowl_r=35.0, bowl_depth=71.0, stem_h=45.0, foot_r=34.0),
+    7: _spec("handle_cup_280", "mug with a handle", _handle_cup, None,
+             r_base=40.0, r_top=41.0, height=71.3),
+    8: _spec("handle_cup_440", "tall mug with a handle (tapered)", _handle_cup, None,
+             r_base=40.0, r_top=45.0, height=97.8),
+    9: _spec("handle_cup_480", "wide mug with a handle (barrel)", _handle_cup, None,
+             r_base=44.0, r_top=46.0, height=87.0, belly=3.0),
+    10: _spec("icecream_cup_175", "ice-cream cup (flaring bowl on a short foot)", _icecream_cup, CONT,
+              rim_r=50.0, bowl_depth=41.0, stem_h=18.0, foot_r=32.0),
+    11: _spec("juice_cup_250", "juice tumbler", _tumbler, CONT,
+              r_base=33.0, r_top=36.0, height=85.0, wall=2.5, floor=8.0),
+    12: _spec("juice_cup_340", "juice tumbler (straight)", _tumbler, CONT,
+              r_base=38.0, r_top=38.5, height=91.7, wall=2.5, floor=8.0),
+    13: _spec("juice_cup_350", "juice tumbler (tapered)", _tumbler, CONT,
+              r_base=32.0, r_top=39.0, height=107.9, wall=2.5, floor=8.0),
+    14: _spec("quartet_cup_80", "quartet cup (small, four-lobed section)", _quartet_cup, 4,
+              r_base=24.0, r_top=27.0, height=52.9),
+    15: _spec("quartet_cup_90", "quartet cup (small, four-lobed section)", _quartet_cup, 4,
+              r_base=25.0, r_top=28.0, height=54.6),
+    16: _spec("short_cup_220", "short cup (low, wide)", _tumbler, CONT,
+              r_base=40.0, r_top=45.0, height=45.9, wall=2.5, floor=6.0, belly=1.5),
+    17: _spec("water_cup_270", "water glass (tall)", _tumbler, CONT,
+              r_base=30.0, r_top=33.0, height=106.7, wall=2.2, floor=8.0),
+    18: _spec("water_cup_300", "water glass (tall)", _tumbler, CONT,
+              r_base=30.5, r_top=34.0, height=112.0, wall=2.2, floor=8.0),
+    19: _spec("whisky_cup_225", "whisky tumbler (short, wide, thick base)", _tumbler, CONT,
+              r_base=41.0, r_top=41.5, height=61.7, wall=3.0, floor=14.0, fillet=3.0),
+    20: _spec("whisky_cup_270", "whisky tumbler (short, wide, thick base)", _tumbler, CONT,
+              r_base=42.5, r_top=43.0, height=67.2, wall=3.0, floor=15.0, fillet=3.0),
 }
 
 _CONTINUOUS_Z = ({"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]},)
@@ -455,13 +383,23 @@ def all_objects() -> list[ObjectModel]:
     return [get_object(i) for i in object_ids()]
 
 
-def object_by_name(name: str) -> ObjectModel:
-    """The object called ``name`` (snake_case, e.g. 'wine_glass')."""
+def object_names() -> dict[int, str]:
+    """{object id: name} of the catalog, in id order, without building any mesh."""
+    return {obj_id: spec.name for obj_id, spec in sorted(_TABLE.items())}
+
+
+def object_id_by_name(name: str) -> int:
+    """The id of the object called ``name`` (e.g. 'goblet_180' -> 6), without building its mesh."""
     for obj_id, spec in _TABLE.items():
         if spec.name == name:
-            return get_object(obj_id)
+            return obj_id
     names = ", ".join(spec.name for spec in _TABLE.values())
     raise TdofError(f"unknown object name {name!r} (valid: {names})")
+
+
+def object_by_name(name: str) -> ObjectModel:
+    """The object called ``name`` (TDoF20's class name, e.g. 'goblet_180')."""
+    return get_object(object_id_by_name(name))
 
 
 def export_models(out_dir: str | Path, obj_ids=None) -> Path:

@@ -469,3 +469,71 @@ def closed_solid_profile(curve: np.ndarray) -> np.ndarray:
     """Close an outer curve (from the axis up to its last point) with a segment back to the axis."""
     c = np.asarray(curve, dtype=np.float64)
     return join(c, [[0.0, c[-1, 1]]])
+
+
+# ------------------------------------------------------------------------------------------
+# More sections and a prismatic vessel
+# ------------------------------------------------------------------------------------------
+def rounded_rect_section(half_x: float, half_y: float, corner_radius: float, corner_points: int = 6,
+                         edge_points: int = 2) -> np.ndarray:
+    """Rectangle ``2 half_x`` by ``2 half_y`` (mm) with corners rounded by ``corner_radius`` mm,
+    counter-clockwise from +x. One quadrant is mirrored into the upper half, which is negated into
+    the lower half, so the loop is exactly invariant under the half turn about z (and, for a square,
+    under quarter turns up to rounding)."""
+    hx, hy, r = float(half_x), float(half_y), float(corner_radius)
+    if not 0.0 < r < min(hx, hy):
+        raise ValueError("corner_radius must be in (0, min(half_x, half_y))")
+    side_x = np.stack([np.full(edge_points + 1, hx), np.linspace(0.0, hy - r, edge_points + 2)[:-1]], axis=1)
+    a = np.radians(np.linspace(0.0, 90.0, max(corner_points, 2)))
+    corner = np.stack([hx - r + r * np.cos(a), hy - r + r * np.sin(a)], axis=1)
+    side_y = np.stack([np.linspace(hx - r, 0.0, edge_points + 2)[1:], np.full(edge_points + 1, hy)], axis=1)
+    q1 = np.concatenate([side_x, corner, side_y])  # (hx, 0) ... (0, hy)
+    q2 = (q1 * [-1.0, 1.0])[::-1]  # (0, hy) ... (-hx, 0)
+    half = np.concatenate([q1[:-1], q2[:-1]])  # (hx, 0) up to just before (-hx, 0)
+    return np.concatenate([half, -half])
+
+
+def lobed_section(n_lobes: int, amplitude: float, points_per_lobe: int = 16) -> np.ndarray:
+    """A unit loop with ``n_lobes`` rounded lobes, r(phi) = 1 + amplitude * cos(n_lobes * phi)
+    (a quatrefoil for 4), counter-clockwise from the lobe on +x. One lobe is rotated n times, so
+    the loop is exactly invariant under rotations by 360/n degrees."""
+    if n_lobes < 2 or not 0.0 < amplitude < 0.5:
+        raise ValueError("lobed_section needs n_lobes >= 2 and 0 < amplitude < 0.5")
+    step = 2.0 * np.pi / n_lobes
+    phi = step * np.arange(points_per_lobe) / points_per_lobe
+    r = 1.0 + amplitude * np.cos(n_lobes * phi)
+    unit = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+    loops = []
+    for k in range(n_lobes):
+        c, s = exact_cos_sin(step * k)
+        loops.append(unit @ np.array([[c, -s], [s, c]]).T)
+    return np.concatenate(loops)
+
+
+def section_area(section: np.ndarray) -> float:
+    """Shoelace area of a closed section loop (M,2), positive when counter-clockwise."""
+    p = np.asarray(section, dtype=np.float64)
+    q = np.roll(p, -1, axis=0)
+    return 0.5 * float(np.sum(p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]))
+
+
+def _unit_solid_profile(extent: float, fillet: float, z0: float, top: float, n_fillet: int = 6) -> np.ndarray:
+    """Closed solid profile in (scale, z): from the axis at z0 out to scale 1 with a bottom fillet of
+    ``fillet`` mm (``fillet / extent`` in scale units across), up to ``top``, back to the axis."""
+    a = np.radians(np.linspace(-90.0, 0.0, n_fillet))
+    f = fillet / extent
+    arc_pts = np.stack([1.0 - f + f * np.cos(a), z0 + fillet + fillet * np.sin(a)], axis=1)
+    return join([[0.0, z0]], arc_pts, [[1.0, top], [0.0, top]])
+
+
+def prism_vessel(outer_section: np.ndarray, inner_section: np.ndarray, height: float, floor: float,
+                 fillet: float = 4.0, inner_fillet: float = 3.0) -> trimesh.Trimesh:
+    """An open-topped vessel with straight walls of any star-shaped cross-section: the solid loft of
+    ``outer_section`` (mm) from z = 0 to ``height`` minus the loft of ``inner_section`` (mm) from the
+    floor up through the top. Both bottoms are filleted; the wall thickness is the gap between the
+    two sections (uniform for sections that are offsets of each other), the rim is flat."""
+    r_out = float(np.linalg.norm(outer_section, axis=1).min())
+    r_in = float(np.linalg.norm(inner_section, axis=1).min())
+    solid = loft(_unit_solid_profile(r_out, fillet, 0.0, height), outer_section)
+    cavity = loft(_unit_solid_profile(r_in, inner_fillet, floor, height + 10.0), inner_section)
+    return difference(solid, cavity)

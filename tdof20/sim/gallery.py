@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 
 from tdof20.formats import write_png
-from tdof20.geometry import PinholeCamera, transform_points
+from tdof20.geometry import transform_points
 from tdof20.objects import all_objects
 from tdof20.sim.render import SimRenderer
 from tdof20.sim.rig import RigLayout, oakd_camera
-from tdof20.sim.scenes import Placement, SceneSpec, _place
-from tdof20.viz import contact_sheet, depth_to_colour, overlay_masks, put_label
+from tdof20.sim.scenes import SceneSpec, _place
+from tdof20.viz import contact_sheet, depth_to_colour, overlay_masks
 
 
 def _crop_square(img: np.ndarray, uv: np.ndarray, margin: float = 0.12) -> np.ndarray:
@@ -33,7 +33,7 @@ def catalog_picture(tile: int = 240) -> np.ndarray:
     T_cam = layout.camera_target(30.0)
     tiles, labels = [], []
     for obj in all_objects():
-        scene = SceneSpec(f"single/{obj.obj_id:02d}", (_place(obj.obj_id, (0.0, 0.0), np.radians(90)),),
+        scene = SceneSpec(f"single/{obj.name}", (_place(obj.obj_id, (0.0, 0.0), np.radians(90)),),
                           "checker", 11)
         r = SimRenderer(scene, cam, layout, [T_cam])
         pose = r.poses(0, 0.0)[0]

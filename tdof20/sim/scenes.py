@@ -1,9 +1,14 @@
 """The 40 TDoF20 scenes of the simulated rig, by name.
 
-``single/NN`` holds object NN alone near the table centre; ``multi/NN`` holds 3-5 objects chosen
-and placed deterministically from the scene number, standing on the turntable top without
-touching each other. Each scene has one background sticker. Everything is a pure function of the
-scene name, so every machine builds the same scene.
+``single/<class>`` (e.g. ``single/cube_136``) holds that object alone near the table centre;
+``single/NN`` with NN = 01..20, the object id, is an alias of it, normalised to the name by
+:func:`normalize_scene_id`. ``multi/00`` .. ``multi/19`` (the release's numbering) each hold 3-5
+objects chosen and placed deterministically from the scene number, standing on the turntable top
+without touching each other. Each scene has one background sticker. Everything is a pure function
+of the scene name, so every machine builds the same scene.
+
+Numeric (BOP) scene ids: ``single/<class>`` -> its object id (1..20), ``multi/NN`` -> 21 + NN
+(21..40); see :func:`scene_number` and :func:`scene_name`.
 """
 
 from __future__ import annotations
@@ -16,10 +21,12 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.geometry import make_T, rotation_matrix
-from tdof20.objects import get_object, object_ids
+from tdof20.objects import get_object, object_ids, object_names
 from tdof20.sim.textures import STICKERS
 
-SCENE_RE = re.compile(r"^(single|multi)/(\d{2})$")
+N_MULTI = 20  # multi/00 .. multi/19
+MULTI_ID_OFFSET = 21  # multi/NN has the numeric scene id 21 + NN
+VALID_FORMS = "single/<class name> (e.g. single/cube_136), single/01..single/20 (object id) or multi/00..multi/19"
 CLEARANCE_MM = 8.0  # free gap between object footprints
 
 
@@ -48,18 +55,59 @@ class SceneSpec:
 
     @property
     def number(self) -> int:
-        return int(self.scene_id.split("/")[1])
+        """The object id of a single-object scene, NN of multi/NN."""
+        return parse_scene_id(self.scene_id)[1]
+
+    @property
+    def numeric_id(self) -> int:
+        """The scene's numeric (BOP) id: 1..20 for single/<class>, 21 + NN for multi/NN."""
+        return scene_number(self.scene_id)
 
 
 def scene_ids() -> list[str]:
-    return [f"single/{i:02d}" for i in range(1, 21)] + [f"multi/{i:02d}" for i in range(1, 21)]
+    """The 40 scene names: single/<class> in object id order, then multi/00 .. multi/19."""
+    return [f"single/{name}" for name in object_names().values()] + [f"multi/{i:02d}" for i in range(N_MULTI)]
 
 
 def parse_scene_id(scene_id: str) -> tuple[str, int]:
-    m = SCENE_RE.match(str(scene_id))
-    if not m or not 1 <= int(m.group(2)) <= 20:
-        raise TdofError(f"unknown scene '{scene_id}' (valid: single/01..single/20, multi/01..multi/20)")
-    return m.group(1), int(m.group(2))
+    """('single', object id) or ('multi', NN) of a scene name or alias; unknown -> one-line TdofError."""
+    s = str(scene_id)
+    kind, _, rest = s.partition("/")
+    names = object_names()
+    if kind == "single":
+        if re.fullmatch(r"\d{2}", rest) and int(rest) in names:
+            return "single", int(rest)
+        for obj_id, name in names.items():
+            if rest == name:
+                return "single", obj_id
+    elif kind == "multi" and re.fullmatch(r"\d{2}", rest) and int(rest) < N_MULTI:
+        return "multi", int(rest)
+    raise TdofError(f"unknown scene {s!r} (valid: {VALID_FORMS})")
+
+
+def normalize_scene_id(scene_id: str) -> str:
+    """The scene's canonical name: 'single/07' -> 'single/handle_cup_280'; names pass unchanged."""
+    kind, n = parse_scene_id(scene_id)
+    return f"single/{object_names()[n]}" if kind == "single" else f"multi/{n:02d}"
+
+
+def scene_number(scene_id: str) -> int:
+    """Numeric (BOP) scene id: 'single/cube_136' (or 'single/01') -> 1, 'multi/00' -> 21, 'multi/19' -> 40."""
+    kind, n = parse_scene_id(scene_id)
+    return n if kind == "single" else MULTI_ID_OFFSET + n
+
+
+def scene_name(number: int) -> str:
+    """The scene name of a numeric scene id: 1 -> 'single/cube_136', 21 -> 'multi/00'."""
+    names = object_names()
+    if isinstance(number, (int, np.integer)) and not isinstance(number, bool):
+        k = int(number)
+        if k in names:
+            return f"single/{names[k]}"
+        if 0 <= k - MULTI_ID_OFFSET < N_MULTI:
+            return f"multi/{k - MULTI_ID_OFFSET:02d}"
+    raise TdofError(f"unknown scene id {number!r} (valid: 1-{len(names)} for single/<class>, "
+                    f"{MULTI_ID_OFFSET}-{MULTI_ID_OFFSET + N_MULTI - 1} for multi/00..multi/{N_MULTI - 1:02d})")
 
 
 def _place(obj_id: int, xy, yaw: float) -> Placement:
@@ -68,9 +116,14 @@ def _place(obj_id: int, xy, yaw: float) -> Placement:
     return Placement(obj_id, make_T(R, [xy[0], xy[1], -obj.z_min]))
 
 
-@lru_cache(maxsize=None)
 def get_scene(scene_id: str, table_radius: float = 250.0) -> SceneSpec:
-    """The scene called ``scene_id`` ('single/07', 'multi/08', ...). Unknown names -> TdofError."""
+    """The scene called ``scene_id`` ('single/goblet_180', its alias 'single/06', 'multi/08', ...);
+    its ``scene_id`` is the canonical name. Unknown names -> TdofError."""
+    return _get_scene(normalize_scene_id(scene_id), float(table_radius))
+
+
+@lru_cache(maxsize=None)
+def _get_scene(scene_id: str, table_radius: float) -> SceneSpec:
     kind, n = parse_scene_id(scene_id)
     rng = np.random.default_rng(1000 * (kind == "multi") + n)
     sticker = STICKERS[int(rng.integers(len(STICKERS)))]
