@@ -192,6 +192,51 @@ def test_meanshift_mode_and_inliers():
     assert torch.isnan(empty).all()
 
 
+def test_meanshift_with_fewer_votes_than_seeds_and_mixed_groups():
+    """Groups of 3 valid votes among 600 (fewer than the 32 seeds and 512 seed votes: repeats are
+    dropped), none, and 600 — in one batch, float64 in, far from the origin."""
+    g = torch.Generator().manual_seed(1)
+    pts = (torch.randn(3, 600, 3, generator=g) * 2 + torch.tensor([10.0, 20.0, 900.0])).double()
+    valid = torch.zeros(3, 600, dtype=torch.bool)
+    valid[0, [5, 100, 599]] = True
+    valid[2] = True
+    stats: dict = {}
+    mode, inl = ffb6d.meanshift(pts, valid, bandwidth=40.0, stats=stats)
+    assert torch.allclose(mode[0].double(), pts[0, [5, 100, 599]].median(0).values, atol=1e-3)
+    assert torch.isnan(mode[1]).all() and not inl[1].any()
+    assert (mode[2].double() - pts[2].mean(0)).norm() < 0.5 and inl[2].all() and inl[0].sum() == 3
+    assert stats["seeds"] == 32 and stats["seed_votes"] == 512 and stats["votes"] == 600
+
+
+def test_recovery_of_a_480x640_vote_set_does_bounded_work():
+    """12,800 points, 3 objects, 30 % outlier votes: every pose within 1 mm / 0.1 deg, and MeanShift's
+    work bounded by seeds x seed votes x seed iterations + the winner's iterations over all votes (the
+    old all-votes-as-seeds MeanShift computed 4,000^2 kernel entries per cluster and iteration)."""
+    meta3 = MethodMeta.from_catalog((1, 2, 3), image_size=(480, 640))
+    v = ffb6d.example_votes(meta3, 12800, object_share=0.6, outliers=0.3, seed=3)
+    assert v["points"].shape == (1, 12800, 3) and v["kp_ofs"].shape == (1, 8, 12800, 3)
+    cfg = ffb6d.FFB6DConfig()
+    stats: dict = {}
+    rows = ffb6d.recover_poses(v["points"], v["classes"], v["ctr_ofs"], v["kp_ofs"], v["model_kps"],
+                               cfg.bandwidth_mm, cfg.meanshift_iters, cfg.max_votes, cfg.min_points,
+                               torch.Generator().manual_seed(0), stats=stats)
+    assert sorted(c for _, c, *_ in rows) == [1, 2, 3]
+    for _, c, score, R, t in rows:
+        R_gt, t_gt = v["poses"][c]
+        assert np.linalg.norm(t - t_gt) < 1.0 and rot_err_deg(R, R_gt) < 0.1
+        assert 0.6 < score <= 1.0
+    n_votes = 12800 * 6 // 10 // 3                                   # 2,560 points per object
+    for part, groups in (("ctr", 3), ("kp", 3 * 8)):
+        st = stats[part]
+        assert st["groups"] == groups and st["votes"] == n_votes
+        assert st["seeds"] == cfg.meanshift_seeds == 32 and st["seed_votes"] == cfg.meanshift_seed_votes == 512
+        assert 1 <= st["seed_iters"] <= cfg.meanshift_seed_iters and 1 <= st["refine_iters"] <= 10
+        bound = groups * (32 * 512 * cfg.meanshift_seed_iters + 32 * n_votes + n_votes * st["refine_iters"])
+        assert st["kernel_evals"] <= bound
+    total = stats["ctr"]["kernel_evals"] + stats["kp"]["kernel_evals"]
+    assert total < 12_000_000 < 27 * n_votes ** 2                    # < one iteration of the old MeanShift
+
+
 # --------------------------------------------------------------------------------------------
 # training
 
