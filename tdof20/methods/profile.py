@@ -23,7 +23,7 @@ only on the number of classes and keypoints):
   its own predicted output, so its time depends on how many objects the untrained segmentation
   claims (``poses`` in the result says how many poses came back);
 - repeats stop early once a measurement has spent :data:`TIME_BUDGET_S` (after one timed run): a
-  pose recovery that takes minutes on a CPU (FFB6D's MeanShift) is timed once;
+  measurement that takes minutes on a CPU is timed once;
 - input preparation: the method's transform of one frame on the CPU (DataLoader workers do it
   during predict; not part of end to end).
 
