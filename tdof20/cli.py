@@ -542,7 +542,10 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               save_every: Optional[float] = typer.Option(None, help="checkpoint at an epoch end when the last is "
                                                          "older (s) [600]"),
               cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
-                                                       "lacks is rendered to (default ROOT/.cache)")) -> None:
+                                                       "lacks is rendered to (default ROOT/.cache)"),
+              part: str = typer.Option("train", "--part", help="train (the split's whole train part) or train-val "
+                                       "(the train part minus its validation part, for choices made on --part val)")
+              ) -> None:
     from tdof20.methods.registry import get_method
     from tdof20.methods.train import TrainOptions, is_main_process, load_train_config, train
 
@@ -564,7 +567,7 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               num_workers=pick(workers, opts.num_workers),
               max_steps=pick(max_steps, opts.max_steps if opts.max_steps > 0 else None),
               seed=pick(seed, opts.seed), backbone_weights=backbone_weights, shard=shard,
-              save_every_s=pick(save_every, opts.save_every_s), cache_dir=cache_dir)
+              save_every_s=pick(save_every, opts.save_every_s), cache_dir=cache_dir, part=part)
     except TdofError as e:
         if getattr(e, "same_in_every_process", False) and not is_main_process():
             sys.exit(2)  # under torchrun: process 0 prints the line
@@ -583,13 +586,15 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train M
                                                     "valid submission) [the run's: auto]"),
                 voting: Optional[str] = typer.Option(None, help="hff6dof: bearing (every pixel) or 3d (pixels with "
                                                      "depth) [the run's: bearing]"),
+                part: str = typer.Option("test", "--part", help="test, or val: the validation part of the split's "
+                                         "train part (where choices are made)"),
                 seed: int = SEED) -> None:
     """Estimate the poses of a split's test images with a run of any method; writes the results CSV with
     per-image times and, beside it, <stem>_info.json (method, its config, depth mode, timings)."""
     from tdof20.methods.predict import predict
 
     predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, masks=masks,
-            voting=voting, seed=seed)
+            voting=voting, seed=seed, part=part)
 
 
 # ----------------------------------------------------------------------------------- benchmark
@@ -602,11 +607,22 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
                     json_out: Optional[Path] = typer.Option(None, "--json", help="write the scores as JSON here"),
                     plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md"),
                     metrics: Optional[str] = typer.Option(None, "--metrics", help="comma-separated: add,proj,vsd,mssd,mspd,ar "
-                                                          "(default: add,proj,mssd,mspd, plus vsd,ar when the dataset has depth)")) -> None:
+                                                          "(default: add,proj,mssd,mspd, plus vsd,ar when the dataset has depth)"),
+                    part: str = typer.Option("test", "--part", help="test, or val: the targets of the --split's "
+                                             "validation part (written to ROOT/.cache/val_targets_<split>.json)")
+                    ) -> None:
     """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC, and BOP19's VSD, MSSD,
     MSPD and AR; per object, per scene and mean."""
     from tdof20.benchmark.scoring import score_command
 
+    if part not in ("test", "val"):
+        raise TdofError(f"--part must be test or val, got '{part}'")
+    if part == "val":
+        from tdof20.benchmark.validation import write_val_targets
+
+        if split is None or targets is not None:
+            raise TdofError("--part val scores against the validation targets of --split: give --split, not --targets")
+        split, targets = None, write_val_targets(dataset, split)
     out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics), highlight=False)
 
 

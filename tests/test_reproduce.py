@@ -83,7 +83,7 @@ def test_end_to_end_tables_hold_every_method_and_object(done):
         assert (out / "tables" / "plots" / f"accuracy_{m}.png").stat().st_size > 2000
     state = read_json(out / "reproduce.json")
     assert all(not k.startswith("train/") or (out / "runs" / k[6:] / "last.pt").exists() for k in state["jobs"])
-    assert len([k for k in state["jobs"] if k.startswith("train/")]) == 4 * 2 + 2
+    assert len([k for k in state["jobs"] if k.startswith("train/")]) == 4 * 2 + 2 + 2  # + hff6dof-3d on both protocols
 
 
 def test_resume_after_a_kill_reuses_finished_work(done):

@@ -12,7 +12,9 @@ Stages (each finished job is recorded in ``DIR/reproduce.json`` with the config'
     train      every method on each protocol -> DIR/runs/<method>_<protocol>/ (plus the ablations'
                HFF6DoF runs on hard: fuse<N>_hard, noseg_hard)
     predict    each run's test part -> DIR/results/<name>.csv (+ _info.json); HFF6DoF also with the
-               paper's 3D voting + least squares (``hff6dof-3d``) from the same run
+               paper's 3D voting + least squares (``hff6dof-3d``): its own run, trained with
+               vector_origin = "observed" (vectors from the input depth's points, the points 3D
+               voting back-projects; docs/hff6dof.md), predicted with voting = "3d"
     score      ADD(S), 2D projection, AUC and accuracy curves -> DIR/scores/<name>.json, with
                "oracle_masks" when ground-truth masks picked the pixels (the run without the
                segmentation head)
@@ -56,6 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from tdof20.benchmark.splits import validation_images  # noqa: F401  (re-exported: the rules live in splits)
 from tdof20.config import ConfigError, check_ranges, config_from_data
 from tdof20.errors import TdofError
 from tdof20.progress import console, progress as progress_bar
@@ -294,29 +297,6 @@ def changed_keys(old: dict, new: dict) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------------
-# validation carving (to move into benchmark/splits.py)
-
-
-def validation_images(images: list[tuple[int, int]], split: str, steps: int, n_arms: int = 4,
-                      fraction: float = 0.1) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
-    """(train, validation) of a split's train part: for 'simple', a contiguous arc of each arm
-    position's turntable steps (like the test arcs, half a turn from them) of ``fraction`` of the
-    steps; for 'hard', the same arcs in every scene (held-out arcs: a scene's frames are never all
-    held out). ``images``: (scene_id, im_id) with im_id = arm * steps + step."""
-    if split not in PROTOCOLS:
-        raise TdofError(f"split must be simple or hard, got '{split}'")
-    if steps < 1 or not 0.0 < fraction < 1.0:
-        raise TdofError("validation needs steps >= 1 and a fraction in (0, 1)")
-    n_val = max(1, round(steps * fraction))
-    train, val = [], []
-    for s, im in images:
-        arm, step = divmod(int(im), steps)
-        start = (arm * steps) // max(n_arms, 4) + steps // 2
-        (val if (step - start) % steps < n_val else train).append((s, im))
-    return train, val
-
-
-# --------------------------------------------------------------------------------------------
 # the adapter: the only calls into training, prediction, scoring and profiling
 
 
@@ -325,7 +305,10 @@ def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConf
     from tdof20.methods.train import train
 
     t = cfg.train
-    return train(root, split, run, method=method, method_config=cfg.method_options.get(method), image_size=tuple(t.image_size), batch_size=t.batch_size,
+    mcfg = cfg.method_options.get(method)
+    if "vector_origin" in options:  # a method option, not a shortcut of train()
+        mcfg = {**(mcfg or {}), "vector_origin": options.pop("vector_origin")}
+    return train(root, split, run, method=method, method_config=mcfg, image_size=tuple(t.image_size), batch_size=t.batch_size,
                  epochs=int(epochs), lr=t.lr, max_steps=t.max_steps or None, num_workers=t.num_workers, seed=t.seed,
                  device=cfg.device, progress=show, **options)
 
@@ -455,6 +438,9 @@ def _runs(cfg: ReproduceConfig) -> list[dict]:
     """Every training: {"name", "method", "split", "options"} (the main runs, then the ablations')."""
     runs = [{"name": f"{m}_{p}", "method": m, "split": p, "options": {}, "epochs": getattr(cfg.epochs, m)}
             for m in cfg.methods for p in cfg.protocols]
+    if "hff6dof" in cfg.methods and cfg.ablations.voting_3d:  # the paper's pose recovery, its own targets
+        runs += [{"name": f"hff6dof-3d_{p}", "method": "hff6dof", "split": p, "options": {"vector_origin": "observed"},
+                  "epochs": cfg.epochs.hff6dof} for p in cfg.protocols]
     for k in cfg.ablations.fuse_stages:
         if k != 3:  # 3 is the main hard run
             runs.append({"name": f"hff6dof_fuse{k}_hard", "method": "hff6dof", "split": "hard",
@@ -472,9 +458,9 @@ def _predictions(cfg: ReproduceConfig) -> list[dict]:
         base = {"run": r["name"], "method": r["method"], "split": r["split"]}
         if r["name"] == f"{r['method']}_{r['split']}":
             out.append({**base, "name": r["name"], "label": LABELS[r["method"]], "options": {}, "role": "main"})
-            if r["method"] == "hff6dof" and cfg.ablations.voting_3d:
-                out.append({**base, "name": f"hff6dof-3d_{r['split']}", "label": LABELS["hff6dof-3d"],
-                            "options": {"voting": "3d"}, "role": "main"})
+        elif r["name"] == f"hff6dof-3d_{r['split']}":
+            out.append({**base, "name": r["name"], "label": LABELS["hff6dof-3d"], "options": {"voting": "3d"},
+                        "role": "main"})
         elif "fuse_stages" in r["options"]:
             k = r["options"]["fuse_stages"]
             out.append({**base, "name": r["name"], "label": f"HFF6DoF {k} fused", "options": {}, "role": f"fuse{k}"})
@@ -585,7 +571,8 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
             s["oracle_masks"] = masks == "gt"
             s["method"], s["label"], s["split"] = p["method"], p["label"], p["split"]
             if p["options"].get("voting") == "3d":
-                s["note"] = "the paper's pose recovery: 3D voting on the back-projected input depth + least squares"
+                s["note"] = ("the paper's pose recovery: 3D voting on the back-projected input depth + least squares, "
+                             "trained with vectors from those observed points")
             f = out / "scores" / f"{p['name']}.json"
             f.parent.mkdir(parents=True, exist_ok=True)
             write_json(f, s)

@@ -21,9 +21,18 @@ restored the restored depth (depth of the objects' models composited       none 
 
 The paper's protocol feeds the network the real, noisy transparent depth at test time, so
 ``restored`` is privileged information — use it only to measure how much the depth costs
-(docs/hff6dof.md). Training *targets* always use the restored depth: the vector of a pixel points
-from the pixel's true 3D point (restored depth) to the keypoints of its object in the ground-truth
-pose, whatever the input mode.
+(docs/hff6dof.md).
+
+Vector origins — where a pixel's training vector starts (``vector_origin``):
+
+- ``restored`` (default): at the pixel's true 3D point (the restored depth back-projected),
+  whatever the input mode; every visible object pixel with restored depth has a target;
+- ``observed``: at the 3D point the network actually sees, the *input* depth back-projected
+  (per ``depth_mode``; on glass often a point behind the surface, seen through it). Pixels without
+  valid input depth get no target (no vector loss) and cast no 3D vote. The lines of the targets
+  then meet at the keypoints from the very points 3D voting back-projects, so 3D voting + least
+  squares (the paper's section 3.5) recovers the pose from exact vectors on any depth; both
+  origins lie on the pixel's viewing ray, so bearing voting works with either.
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ from tdof20.methods.hff6dof import fill_depth_holes, geometry_map
 from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED, N_KEYPOINTS, surface_keypoints
 
 DEPTH_MODES = ("raw", "filled", "restored")
+VECTOR_ORIGINS = ("restored", "observed")
 #: the input depth used unless told otherwise (the result of the comparison in docs/hff6dof.md)
 DEFAULT_DEPTH_MODE = "filled"
 N_CLASSES = 21          # a run without a class list: background + objects 1..20, class = obj_id
@@ -73,6 +83,12 @@ def to_classes(ids: torch.Tensor, lut: torch.Tensor) -> torch.Tensor:
     ids = ids.long()
     inside = (ids >= 0) & (ids < len(lut))
     return torch.where(inside, lut[ids.clamp(0, len(lut) - 1)], torch.zeros_like(ids))
+
+
+def check_vector_origin(origin: str) -> str:
+    if origin not in VECTOR_ORIGINS:
+        raise TdofError(f"unknown vector origin '{origin}' (valid: {', '.join(VECTOR_ORIGINS)})")
+    return origin
 
 
 def check_depth_mode(mode: str) -> str:
@@ -271,7 +287,9 @@ class HFFTransform:
     - with ``targets`` (and labels in the item): ``seg`` (H,W) int64 obj_id per pixel (0 =
       background); ``vec`` (3K,H,W) unit vectors from each object pixel's true 3D point (restored
       depth) to its object's K keypoints in the ground-truth pose (0 elsewhere); ``mask`` (H,W) bool,
-      the pixels where ``vec`` is defined (visible object pixels with restored depth);
+      the pixels where ``vec`` is defined (visible object pixels with restored depth; with
+      ``vector_origin = "observed"`` the vectors start at the input depth's points instead, and
+      only pixels with input depth have them);
     - ``scene_id``, ``im_id``; ``label`` (H,W) the resized ground-truth label whenever the item has one.
 
     ``classes``: the object id of each class 1..n (a dataset with any ids): labels and instance
@@ -280,13 +298,15 @@ class HFFTransform:
     """
 
     def __init__(self, keypoints: Mapping[int, np.ndarray] | torch.Tensor, image_size: Sequence[int],
-                 depth_mode: str = DEFAULT_DEPTH_MODE, targets: bool = True, classes: Sequence[int] | None = None):
+                 depth_mode: str = DEFAULT_DEPTH_MODE, targets: bool = True, classes: Sequence[int] | None = None,
+                 vector_origin: str = "restored"):
         self.lut = class_lookup(classes) if classes is not None else None
         self.kp_table = keypoints if isinstance(keypoints, torch.Tensor) else \
             keypoint_table(keypoints, classes=classes)
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self.depth_mode = check_depth_mode(depth_mode)
         self.targets = bool(targets)
+        self.vector_origin = check_vector_origin(vector_origin)
 
     def __call__(self, item: Mapping) -> dict:
         hw = self.image_size
@@ -306,15 +326,18 @@ class HFFTransform:
             label = item["label"] if self.lut is None else to_classes(item["label"], self.lut)
             out["label"] = resize_nearest(label, hw)
         if self.targets:
-            if "label" not in item or restored is None:
+            observed = self.vector_origin == "observed"
+            if "label" not in item or (restored is None and not observed):
                 raise TdofError("training targets need labels and the restored depth")
             obj = item["obj_id"] if self.lut is None else to_classes(item["obj_id"], self.lut)
-            out.update(self.vector_targets(out["label"], resize_nearest(item["instance"], hw), restored, K,
-                                           obj, item["R"], item["t"]))
+            out.update(self.vector_targets(out["label"], resize_nearest(item["instance"], hw),
+                                           depth if observed else restored, K, obj, item["R"], item["t"]))
         return out
 
     def vector_targets(self, label: torch.Tensor, instance: torch.Tensor, restored: torch.Tensor, K: torch.Tensor,
                        obj_id: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> dict:
+        """Targets from the origin depth ``restored`` (the restored depth, or the input depth with
+        ``vector_origin = "observed"``): pixels of visible instances where that depth is > 0."""
         H, W = label.shape
         nk = self.kp_table.shape[1]
         obj = obj_id.long().clamp(0, self.kp_table.shape[0] - 1)

@@ -26,8 +26,8 @@ import torch
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
-from tdof20.methods.data import DEFAULT_DEPTH_MODE, HFFTransform, check_depth_mode, identity_classes, \
-    keypoints_from_json
+from tdof20.methods.data import DEFAULT_DEPTH_MODE, HFFTransform, check_depth_mode, check_vector_origin, \
+    identity_classes, keypoints_from_json
 from tdof20.methods.hff6dof import DEFAULT_DECODER_CHANNELS, DEFAULT_HEAD_CHANNELS, HFF6DoF
 from tdof20.methods.losses import hff_loss
 
@@ -44,7 +44,10 @@ class HFF6DoFConfig:
     decoder_channels (6 widths at strides 1..32) and head_channels (sized to the paper's 56.82 M),
     backbone_weights (a torchvision resnet34 .pth for both encoders; "" = random init).
     Input: depth_mode 'raw' | 'filled' (the transparent sensor's depth; 'restored' is privileged,
-    an upper bound only). Loss: w_vec (weight of the vector field's L1; the paper's 2).
+    an upper bound only). Targets: vector_origin 'restored' (vectors start at the true surface
+    point, the restored depth; default) | 'observed' (at the input depth's back-projected point the
+    network sees; pixels without input depth get no vector loss and cast no 3D vote: the paper's
+    3D voting + least squares made to work on glass depth, docs/hff6dof.md). Loss: w_vec (weight of the vector field's L1; the paper's 2).
     Prediction: masks ('auto' = the network's segmentation when it has the head, else 'gt';
     'network'; 'gt' = the dataset's visible masks, an oracle), voting ('bearing' | '3d'),
     min_pixels (smallest segment; 0 = 0.05 % of the image, at least 10), max_points (voting pixels
@@ -57,6 +60,7 @@ class HFF6DoFConfig:
     head_channels: int = DEFAULT_HEAD_CHANNELS
     backbone_weights: str = ""
     depth_mode: str = DEFAULT_DEPTH_MODE
+    vector_origin: str = "restored"
     w_vec: float = 2.0
     masks: str = "auto"
     voting: str = "bearing"
@@ -74,6 +78,7 @@ class HFF6DoFConfig:
         if len(self.decoder_channels) != 6 or min(self.decoder_channels) < 1:
             raise TdofError(f"hff6dof decoder_channels needs 6 widths >= 1, got {list(self.decoder_channels)}")
         check_depth_mode(self.depth_mode)
+        check_vector_origin(self.vector_origin)
         if self.masks not in MASKS:
             raise TdofError(f"hff6dof masks must be one of {', '.join(MASKS)}, got '{self.masks}'")
         if self.voting not in VOTINGS:
@@ -105,7 +110,7 @@ class HFF6DoFTransform:
     def __init__(self, cfg: HFF6DoFConfig, meta: MethodMeta, train: bool = False):
         classes = list(meta.obj_ids)
         self.inner = HFFTransform({o: meta.keypoints[o] for o in classes}, meta.image_size, cfg.depth_mode,
-                                  targets=bool(train), classes=classes)
+                                  targets=bool(train), classes=classes, vector_origin=cfg.vector_origin)
 
     def __call__(self, item: Mapping) -> dict:
         return self.inner(item)

@@ -31,8 +31,11 @@ HFF6DoF's pose recovery (:func:`recover_poses`, used by ``hff6dof_method.predict
      (:func:`~tdof20.methods.voting.vote_keypoints_batched`); Kabsch (least squares, weighted by
      each keypoint's inlier count) of the model's keypoints onto them gives R, t.
 
-   On glass most sensor depth is missing or lies behind the surface, which biases ``3d`` voting;
-   the comparison is in docs/hff6dof.md;
+   On glass most sensor depth is missing or lies behind the surface, which biases ``3d`` voting
+   of a run trained with vectors from the true surface points (``vector_origin = "restored"``);
+   a run trained with ``vector_origin = "observed"`` (vectors from the input depth's points, none
+   where it has no depth) votes from the very points its vectors start at. The comparison is in
+   docs/hff6dof.md;
 4. score = the mean fraction of the object's voting pixels that are inliers.
 """
 
@@ -55,6 +58,7 @@ from tdof20.methods.voting import vote_keypoints_batched
 from tdof20.progress import console, progress as progress_bar
 
 MASK_SOURCES = ("auto", "network", "gt")
+PREDICT_PARTS = ("test", "val")
 VOTING = ("3d", "bearing")
 DEFAULT_VOTING = "bearing"  # the result of the depth comparison in docs/hff6dof.md
 
@@ -306,8 +310,9 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
             device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str | None = None,
             min_pixels: int | None = None, max_points: int | None = None, n_hyp: int | None = None,
             inlier_cos: float | None = None, voting: str | None = None, amp: bool | None = None, seed: int = 0,
-            progress: bool = True, method_options: dict | None = None) -> Path:
-    """Estimate the poses of every test image of ``split`` with the run in ``run_dir`` (any method)
+            progress: bool = True, method_options: dict | None = None, part: str = "test") -> Path:
+    """Estimate the poses of every test image of ``split`` (``part`` 'val': of its validation part,
+    :mod:`tdof20.benchmark.validation`, where choices are made) with the run in ``run_dir`` (any method)
     and write the BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its
     path. A summary (method, its config, depth mode, timings, counts, options) goes to
     ``<out_csv stem>_info.json`` beside it.
@@ -327,12 +332,12 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     rows, info = predict_rows(run_dir, dataset_root, split, device=device, batch_size=batch_size,
                               num_workers=num_workers, masks=masks, min_pixels=min_pixels, max_points=max_points,
                               n_hyp=n_hyp, inlier_cos=inlier_cos, voting=voting, amp=amp, seed=seed,
-                              progress=progress, method_options=method_options)
+                              progress=progress, method_options=method_options, part=part)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_csv, rows)
     write_json(info_path(out_csv), info)
     if progress:
-        console.print(f"{info['method']}: {info['predictions']} poses in {info['images']} images ({split}/test, "
+        console.print(f"{info['method']}: {info['predictions']} poses in {info['images']} images ({split}/{part}, "
                       f"masks: {info['masks']}, depth: {info['depth_mode']}); network "
                       f"{info['network_ms_per_image']:.1f} ms + pose {info['pose_ms_per_image']:.1f} ms per image "
                       f"-> {out_csv}")
@@ -362,10 +367,11 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                  batch_size: int = 1, num_workers: int = 2, masks: str | None = None, min_pixels: int | None = None,
                  max_points: int | None = None, n_hyp: int | None = None, inlier_cos: float | None = None,
                  voting: str | None = None, amp: bool | None = None, seed: int = 0, progress: bool = True,
-                 images: list[tuple[int, int]] | None = None, method_options: dict | None = None
-                 ) -> tuple[list[tuple], dict]:
+                 images: list[tuple[int, int]] | None = None, method_options: dict | None = None,
+                 part: str = "test") -> tuple[list[tuple], dict]:
     """What :func:`predict` writes, without writing: (rows (scene_id, im_id, obj_id, score, R (3,3),
-    t (3,) mm, time s), summary dict). ``images`` overrides the split's test images."""
+    t (3,) mm, time s), summary dict). ``part``: 'test' or 'val' (the validation part of the
+    split's train part); ``images`` overrides both."""
     dataset_root = Path(dataset_root)
     if masks is not None and masks not in MASK_SOURCES:
         raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
@@ -375,8 +381,18 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
 
     ds = open_dataset(dataset_root)  # the one "not a dataset" check
     bop_split = ds.check_split(split) if ds.layout == "bop" else None
+    if part not in PREDICT_PARTS:
+        raise TdofError(f"--part must be one of {', '.join(PREDICT_PARTS)}, got '{part}'")
     if images is None:
-        images = split_part_images(dataset_root, split, "test", "predict")
+        if part == "val":
+            from tdof20.benchmark.validation import part_images
+
+            images = part_images(dataset_root, split, "val")
+            if not images:
+                raise TdofError(f"the {split} split's validation part is empty (too few turntable steps per arm "
+                                "position for a validation arc): nothing to predict", dataset_root)
+        else:
+            images = split_part_images(dataset_root, split, "test", "predict")
     if not images:
         raise TdofError("no images to predict")
     dev = select_device(device)
@@ -416,7 +432,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     timer = NetworkTimer(net, dev)
     try:
         with torch.inference_mode(), progress_bar(bool(progress), unit="img") as bar:
-            task = bar.add_task(f"predict {split}/test", total=len(images))
+            task = bar.add_task(f"predict {split}/{part}", total=len(images))
             for batch in loader:
                 batch = to_device(batch, dev)
                 _sync(dev)
@@ -441,7 +457,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     t_net = min(timer.seconds, t_all)
     info = {"run": str(Path(run_dir).resolve()), "method": method.name, "input": method.inputs,
             "method_config": method.config_to_data(cfg), "dataset": str(dataset_root.resolve()), "split": split,
-            "images": n_img, "predictions": len(rows), "masks": mask_source,
+            "part": part, "images": n_img, "predictions": len(rows), "masks": mask_source,
             "dropped_objects_not_in_dataset": n_foreign, "depth_mode": depth_mode,
             "image_size": list(meta.image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),
             "seed": int(seed),

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import math
 import os
 import time
@@ -486,12 +487,19 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
     """Refuse to resume a run with other method, network, data or batch options."""
     pairs = [("method", saved.get("method"), new.get("method"))]
     if "method_config" in saved and "method_config" in new:
-        old_m, new_m = saved["method_config"], new["method_config"]
+        old_m, new_m = dict(saved["method_config"]), new["method_config"]
+        try:  # an option added since the run was made: the run had its default
+            defaults = get_method(str(new.get("method"))).config_to_data(get_method(str(new.get("method"))).default_config())
+        except TdofError:
+            defaults = {}
+        old_m.update({k: v for k, v in defaults.items() if k not in old_m})
         pairs += [(f"{new['method']} option {k}", old_m.get(k), new_m.get(k)) for k in sorted(set(old_m) | set(new_m))]
     old_net, new_net = saved.get("network") or {}, new.get("network") or {}
     pairs += [(f"network {k}", old_net.get(k), new_net.get(k)) for k in sorted(set(old_net) | set(new_net))
               if old_net and new_net]
     pairs += [(key, saved.get(key), new.get(key)) for key in ("image_size", "depth_mode", "split")]
+    pairs += [("part", saved.get("part", "train"), new.get("part", "train")),
+              ("the list of training images", saved.get("images_sha256"), new.get("images_sha256"))]
     pairs.append(("classes (object ids)", run_classes(saved), run_classes(new)))
     pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
     for key, old, now in pairs:
@@ -502,7 +510,8 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
 
 
 def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
-               show: bool, cache_dir: str | Path | None = None) -> Path:
+               show: bool, cache_dir: str | Path | None = None, images: list | None = None,
+               part: str = "train") -> Path:
     from tdof20.benchmark.dataset import pack
 
     if shard is not None:
@@ -510,10 +519,64 @@ def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path 
         if not path.exists():
             raise TdofError("no such shard (write one with `tdof20 dataset pack`)", path)
         return path
-    path = out_run / "data" / f"{split}_train.h5"
+    if images is None:
+        path = out_run / "data" / f"{split}_train.h5"
+        if rank == 0 and not path.exists():
+            pack(dataset_root, split, "train", path, show_progress=show, cache_dir=cache_dir)
+        return path
+    # a subset of the train part (train minus validation, or an explicit list)
+    from tdof20.formats.dataset import open_dataset
+    from tdof20.formats.shards import pack_shard
+
+    path = out_run / "data" / f"{split}_{part}.h5"
     if rank == 0 and not path.exists():
-        pack(dataset_root, split, "train", path, show_progress=show, cache_dir=cache_dir)
+        ds = open_dataset(dataset_root, cache_dir=cache_dir)
+        bop_split = split if ds.layout == "bop" else None
+        ds.render_restored(images, bop_split, show_progress=show)
+        with progress_bar(show) as bar:
+            task = bar.add_task(f"packing {split}/{part}", total=len(images))
+            pack_shard(images, ds, path, {"split": split, "part": part, "dataset": str(dataset_root.resolve()),
+                                          "layout": ds.layout},
+                       models_dir=ds.models_dir, progress_bar=lambda: bar.advance(task), split=bop_split)
     return path
+
+
+TRAIN_PARTS = ("train", "train-val")
+
+
+def train_images(dataset_root: str | Path, split: str, part: str = "train",
+                 images: list[tuple[int, int]] | None = None) -> tuple[list[tuple[int, int]] | None, str]:
+    """The images a training takes, and the part's name for the run: (None, 'train') = the whole
+    train part (packed as `dataset pack` does); part 'train-val' = the train part minus the
+    validation part (tdof20.benchmark.validation); ``images`` = exactly these (part 'images';
+    refused when one is outside the train part)."""
+    if images is not None:
+        images = sorted({(int(s), int(i)) for s, i in images})
+        if not images:
+            raise TdofError("the list of training images is empty", dataset_root)
+        whole = set(split_part_images(dataset_root, split, "train", "train on"))
+        outside = [im for im in images if im not in whole]
+        if outside:
+            raise TdofError(f"{len(outside)} of the {len(images)} training images are not in the {split} split's "
+                            f"train part (first: scene {outside[0][0]}, image {outside[0][1]})", dataset_root)
+        return images, "images"
+    if part not in TRAIN_PARTS:
+        raise TdofError(f"--part must be one of {', '.join(TRAIN_PARTS)}, got '{part}'")
+    if part == "train":
+        return None, "train"
+    from tdof20.benchmark.validation import split_with_val
+
+    keep, val = split_with_val(dataset_root, split)
+    if not keep:
+        raise TdofError(f"the {split} split's train part minus its validation part is empty: nothing to train on",
+                        dataset_root)
+    return keep, "train-val"
+
+
+def images_digest(images: list[tuple[int, int]] | None) -> str | None:
+    if images is None:
+        return None
+    return hashlib.sha256(json.dumps([list(x) for x in images]).encode()).hexdigest()[:16]
 
 
 # --------------------------------------------------------------------------------------------
@@ -561,7 +624,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
           depth_mode: str | None = None, fuse_stages: int | None = None, seg_head: bool | None = None,
           device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
           seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
-          save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None) -> Path:
+          save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None,
+          part: str = "train", images: list[tuple[int, int]] | None = None) -> Path:
     """Train (or resume training) ``method`` on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
@@ -580,6 +644,10 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     an HDF5 file from `tdof20 dataset pack` to train on instead of packing into RUN/data/.
     save_every_s: checkpoint at the end of an epoch when the last checkpoint is older than this many
     seconds (0 = after every epoch), and always when the run ends.
+    part: 'train' (default: the split's whole train part) or 'train-val' (the train part minus its
+    validation part, :mod:`tdof20.benchmark.validation`, so that choices can be made on
+    validation); images: an explicit list of (scene_id, im_id) of the train part instead. The run
+    records its part ("part", and "images_sha256" of the list) and refuses to resume on another.
 
     Any dataset layout (tdof20's, BOP's: ``split`` is then a split folder such as 'train_pbr') and
     any object ids: classes 1..n map to the dataset's objects (the run's meta; a tdof20 dataset
@@ -619,8 +687,11 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             image_size = tuple(m.default_image_size)
 
         check_run_folder(out_run, dataset_root)
+        if shard is not None and (part != "train" or images is not None):
+            raise TdofError("--shard decides the training images: give it without --part or an image list", shard)
         if shard is None:
             split_part_images(dataset_root, split, "train", "train on")
+        subset, part = train_images(dataset_root, split, part, images) if shard is None else (None, "train")
 
         dev = select_device(device)
         if world > 1:
@@ -652,7 +723,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             # the options that must not change, before the work (a native image size is known later)
             early = {"method": m.name, "image_size": saved.get("image_size") if image_size is None else
                      [int(image_size[0]), int(image_size[1])], "depth_mode": depth_mode_of(cfg), "split": split,
-                     "classes": run_classes(saved), "train": {"batch_size": batch_size},
+                     "part": part, "images_sha256": images_digest(subset), "classes": run_classes(saved), "train": {"batch_size": batch_size},
                      "method_config": m.config_to_data(cfg)}
             if m.name == "hff6dof":
                 with torch.device("meta"):
@@ -682,7 +753,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             console.print("[yellow]mixed precision is for CUDA devices; training in float32")
         if main:
             out_run.mkdir(parents=True, exist_ok=True)
-        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir)
+        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir, subset, part)
         if dist is not None:
             dist.barrier(group=wait_group)
         data = ShardDataset(shard_path)
@@ -717,6 +788,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                        world_size=world, device=str(dev))
         config = {"method": m.name, "version": 2, "method_config": m.config_to_data(cfg), "meta": _meta_json(meta),
                   "input": m.inputs, "image_size": list(image_size), "depth_mode": depth_mode_of(cfg), "split": split,
+                  "part": part, "images_sha256": images_digest(subset),
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
                   "keypoints": keypoints_to_json(meta.keypoints), "classes": list(meta.obj_ids),
                   "objects": {str(o): ds.object_name(o) for o in meta.obj_ids if o in ds.models_info},
@@ -769,7 +841,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         sampler = torch.utils.data.DistributedSampler(tdata, num_replicas=world, rank=rank, shuffle=True,
                                                       seed=seed, drop_last=True)
         if main and show:
-            console.print(f"{m.name} on {split}/train: {n} images at {image_size[0]}x{image_size[1]}, depth "
+            console.print(f"{m.name} on {split}/{part}: {n} images at {image_size[0]}x{image_size[1]}, depth "
                           f"{depth_mode_of(cfg)}, batch {bs} x {world} process(es), {steps_per_epoch} steps/epoch, "
                           f"device {dev}{' (AMP ' + str(amp_dtype(dev)).split('.')[-1] + ')' if use_amp else ''}"
                           + (f", resuming at epoch {epoch}, step {step}" if resume else ""))
