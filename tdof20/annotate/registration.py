@@ -20,9 +20,12 @@ and the per-arm and session passes; the turntable's model and what the depth say
 :mod:`~tdof20.annotate.turntable`, the clouds, ICP and the pose graph in :mod:`~tdof20.annotate.icp`,
 the evaluation against the simulator's truth in :mod:`~tdof20.annotate.evaluate`.
 
-1. table plane by RANSAC (open3d ``segment_plane``) on the centre of a few frames, the plane with a
-   normal near the robot's vertical (the prior ``R_base_cam^T e_z``) wins; the normal, oriented
-   towards the camera, is the first estimate of the turntable axis (``turntable.table_plane``);
+1. table plane by seeded RANSAC on the centre of a few frames: of the planes with a normal near the
+   robot's vertical (the prior ``R_base_cam^T e_z``), refined by least squares, the highest with
+   (almost) none of the moving points below it — the objects stand on the turntable top, the bench
+   below it has them above it too but lies lower (``turntable.table_plane``); when no level plane
+   qualifies the table top is a guess and the arm is flagged with that reason. The normal,
+   oriented towards the camera, is the first estimate of the turntable axis;
 2. a first axis point from **what moves**: per sampled frame the points that stand there and not
    in another sampled frame (the objects; the static room, clutter beside the table and the
    featureless disk drop out), and between consecutive sampled frames the centre of the turn
@@ -53,7 +56,8 @@ the evaluation against the simulator's truth in :mod:`~tdof20.annotate.evaluate`
    clouds; they keep their prior pose;
 6. arm positions: every arm's turntable axis, moved into the reference camera through the
    robot's poses, must agree with the others' (``_cross_check_axes``: within ``arm_axis_max_mm``
-   at the table top and ``arm_axis_max_deg``; the median of three or more, each other for two);
+   at the table top and ``arm_axis_max_deg``, and its table top within ``arm_plane_max_mm`` of
+   theirs along the axis; the median of three or more, each other for two);
    the robot prior ``inv(T_base_cam(0)) @ T_base_cam(a)`` is refined by ICP between the arms'
    fused turntable clouds; a correction beyond the limits keeps the prior and flags the arm, and
    the axes are checked again after the ICP. A flagged arm has none of its frames labelled.
@@ -121,6 +125,8 @@ class RegistrationConfig:
     plane_dist_mm: float = 4.0                # RANSAC inlier distance
     plane_prior_max_deg: float = 30.0         # table normal within this of the robot's vertical
     plane_max_below: float = 0.3              # most of the image centre must not lie below the table
+                                              # (the rule when too little moves to tell)
+    plane_moving_below: float = 0.05          # the table top has at most this share of the moving points below it
     plane_frames: int = 6                     # frames sampled per arm for the plane / first axis
     # crop: the turntable volume
     crop_below_mm: float = 10.0               # keep points down to this far below the table top
@@ -166,6 +172,7 @@ class RegistrationConfig:
     max_arm_correction_mm: float = 50.0
     arm_axis_max_mm: float = 15.0             # every arm's turntable axis within this of the others' (at the
     arm_axis_max_deg: float = 3.0             # table top) and this in direction, through the arms' poses
+    arm_plane_max_mm: float = 10.0            # every arm's table top within this of the others' (along the axis)
 
     def __post_init__(self) -> None:
         check_ranges(self, "register", positive=(
@@ -176,10 +183,10 @@ class RegistrationConfig:
             "prior_sigma_r_mm", "pass1_edge_max_deg", "pass1_edge_max_mm", "edge_max_deg", "edge_max_mm",
             "model_voxel_mm", "frame_icp_dist_mm", "max_rmse_mm", "max_residual_deg", "max_residual_mm",
             "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm",
-            "arm_axis_max_mm", "arm_axis_max_deg"),
+            "arm_axis_max_mm", "arm_axis_max_deg", "arm_plane_max_mm"),
             non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
                           "pass2_first_level"),
-            fraction=("plane_window", "plane_max_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
+            fraction=("plane_window", "plane_max_below", "plane_moving_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
         if self.max_depth_mm <= self.min_depth_mm:
             raise TdofError(f"register.max_depth_mm ({self.max_depth_mm}) must be above register.min_depth_mm "
                             f"({self.min_depth_mm})")
@@ -372,6 +379,7 @@ class _Arm:
         self.steps = steps
         self.axis_source = ""
         self.moving = np.zeros((0, 3))            # points that moved between sampled frames (the objects)
+        self.plane_problem = ""                   # why the table top is a guess ("" when it is not)
 
 
 def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: float, prog,
@@ -408,9 +416,12 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     if m is not None:
         n, d = np.asarray(m["n"], float), float(m["d"])
         full = [load_points(session, cfg, arm, k) for k in good_sample]
+        plane = m.get("plane", {})
     else:
-        n, d, full = table_plane(session, cfg, arm, good_sample, prior_up)
+        plane = {}
+        n, d, full = table_plane(session, cfg, arm, good_sample, prior_up, plane)
     A.plane_n, A.plane_d = n, d
+    A.plane_problem = plane.get("problem", "")
     # optical axis foot on the plane: a first guess of the table centre
     ray = np.array([0.0, 0.0, 1.0])
     foot = ray * (-d / (n @ ray)) if abs(n @ ray) > 1e-3 else -n * d
@@ -671,12 +682,19 @@ def _cross_check_axes(arms: list[ArmRegistration], pose: str, cfg: RegistrationC
             pc, dc = np.median(pts, axis=0), np.median(dirs, axis=0)
             dc = dc / np.linalg.norm(dc)
         rel = pts[i] - pc
-        off = float(np.linalg.norm(rel - (rel @ dc) * dc))
+        along = float(rel @ dc)              # the table tops' heights apart (the axis points lie on them)
+        off = float(np.linalg.norm(rel - along * dc))
         ang = math.degrees(math.acos(float(np.clip(abs(dirs[i] @ dc), -1.0, 1.0))))
+        reasons = []
         if off > cfg.arm_axis_max_mm or ang > cfg.arm_axis_max_deg:
+            reasons.append(f"its turntable axis stands {off:.1f} mm / {ang:.2f} deg from the other arm positions' "
+                           f"{how} (limits {cfg.arm_axis_max_mm:g} mm / {cfg.arm_axis_max_deg:g} deg)")
+        if abs(along) > cfg.arm_plane_max_mm:
+            reasons.append(f"its table top lies {abs(along):.1f} mm {'above' if along > 0 else 'below'} the other "
+                           f"arm positions' {how} (limit {cfg.arm_plane_max_mm:g} mm)")
+        if reasons:
             a.flagged = True
-            reason = (f"its turntable axis stands {off:.1f} mm / {ang:.2f} deg from the other arm positions' "
-                      f"{how} (limits {cfg.arm_axis_max_mm:g} mm / {cfg.arm_axis_max_deg:g} deg)")
+            reason = "; ".join(reasons)
             a.reason = f"{a.reason}; {reason}" if a.reason else reason
 
 
@@ -759,7 +777,8 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
             frames.extend(fr)
             T_prior = invert(T_base_cam0) @ info.T_base_cam(a)
             arms.append(ArmRegistration(a, A.axis_dir, A.axis_point, A.plane_n, A.plane_d, A.radius,
-                                        T_prior.copy() if a else np.eye(4), T_prior if a else np.eye(4)))
+                                        T_prior.copy() if a else np.eye(4), T_prior if a else np.eye(4),
+                                        flagged=bool(A.plane_problem), reason=A.plane_problem))
         # --- the arms' axes must agree through the robot's poses --------------------------------
         _cross_check_axes(arms, "T_ref_arm_prior", cfg, "through the robot's poses")
         # --- relate the arm positions ---------------------------------------------------------
@@ -769,7 +788,8 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
             a = arm_reg.arm
             if not cfg.refine_arms or ref is None or len(fused[a].points) < cfg.min_points:
                 if cfg.refine_arms:
-                    arm_reg.reason = "arm-to-arm refinement skipped: too few registered points; robot prior kept"
+                    why = "arm-to-arm refinement skipped: too few registered points; robot prior kept"
+                    arm_reg.reason = f"{arm_reg.reason}; {why}" if arm_reg.reason else why
                 continue
             src = Pyramid.from_cloud(fused[a], cfg)
             T, fit, rmse, _ = icp_prior(src, ref, arm_reg.T_ref_arm_prior, arms[0].axis_point, cfg,
@@ -783,8 +803,9 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
             arm_reg.correction_deg, arm_reg.correction_mm = float(cd), cm
             if fit < cfg.arm_min_fitness or cd > cfg.max_arm_correction_deg or cm > cfg.max_arm_correction_mm:
                 arm_reg.flagged = True
-                arm_reg.reason = (f"arm-to-arm ICP disagrees with the robot prior (fitness {fit:.2f}, correction "
-                                  f"{float(cd):.2f} deg / {cm:.1f} mm); robot prior kept")
+                why = (f"arm-to-arm ICP disagrees with the robot prior (fitness {fit:.2f}, correction "
+                       f"{float(cd):.2f} deg / {cm:.1f} mm); robot prior kept")
+                arm_reg.reason = f"{arm_reg.reason}; {why}" if arm_reg.reason else why
             else:
                 arm_reg.T_ref_arm = T
         _cross_check_axes(arms, "T_ref_arm", cfg, "after the arm-to-arm ICP")

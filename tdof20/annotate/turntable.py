@@ -7,7 +7,7 @@ Conventions as in :mod:`tdof20.annotate.registration` (mm; ``T_a_b`` maps frame 
   about its axis), :func:`fit_axis` (the common axis of a set of poses), :func:`rot_deg` and
   :func:`T_diff` (how far a pose is from another);
 * the volume: :func:`height_radius` (cylinder coordinates about the axis), :func:`crop_points`;
-* measured from the depth: :func:`table_plane` (RANSAC on the image centres, the level plane with
+* measured from the depth: :func:`table_plane` (RANSAC on the image centres, the highest level plane with
   nothing that moves below it), :func:`sampled_motion` (what moves between sampled frames and the
   turn that carries it), :func:`check_turntable` (``turntable.direction`` and ``step_deg`` of
   session.json against the data), :func:`disk_radius` (where the plane band stops filling every
@@ -154,17 +154,25 @@ class VolumeCrop:
 
 def _moving_points(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int]) -> np.ndarray:
     """Points (N,3) that change between sampled frames (the nearer surface where depth differs by
-    more than 10 mm): what turns with the table."""
+    more than 10 mm or 3 %): what turns with the table. Only regions of 2x2 pixels at least count
+    (a binary opening of each pair's mask): far static surfaces (a back wall at 1.6 m, ~+-50 mm
+    of sensor noise) flicker past the threshold in isolated pixels, and those speckles, far below
+    the table top, made up 9 % of the "moving" points of a small cup and pushed the table-top
+    choice onto the bench below the turntable (arm 0 of single/water_cup_270, 39 mm low)."""
+    from scipy import ndimage
+
     cam = session.info.camera
     imgs = []
     for k in steps[:4]:
         z = session.load_depth_mm(cfg.phase, arm, k)
         imgs.append(np.where((z >= cfg.min_depth_mm) & (z <= cfg.max_depth_mm), z, 0))
     out = []
+    block = np.ones((2, 2), bool)
     for i in range(len(imgs)):
         for j in range(i + 1, len(imgs)):
             a, b = imgs[i], imgs[j]
             m = (a > 0) & (b > 0) & (np.abs(a - b) > np.maximum(10.0, 0.03 * np.minimum(a, b)))
+            m = ndimage.binary_opening(m, block)
             out.append(cam.to_points(np.where(m, np.minimum(a, b), 0))[0])
     return np.concatenate(out).astype(np.float64) if out else np.zeros((0, 3))
 
@@ -348,15 +356,19 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
         sample = [available[i] for i in
                   np.unique(np.linspace(0, len(available) - 1, cfg.plane_frames).round().astype(int))]
         prior_up = info.T_base_cam(arm)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        plane: dict = {}
         try:
-            n, d, _ = table_plane(session, cfg, arm, sample, prior_up)
+            n, d, _ = table_plane(session, cfg, arm, sample, prior_up, plane)
             motion, moving = sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)
         except TdofError:
             continue
         if measured is not None:
             measured[arm] = {"steps": list(sample), "n": n, "d": d, "sign": sign, "moving": moving,
+                             "plane": plane,
                              "pairs": [{k: v for k, v in p.items() if k not in ("moved", "free", "pinned", "reversed")}
                                        for p in motion if p["for_axis"]]}
+        if plane.get("problem"):
+            continue       # the motion about a guessed table top says nothing about the direction
         pairs = [p for p in motion if p["moved"] and p["free"][1] >= 0.45 and p["pinned"]]
         for p in pairs:
             best = max(p["score"], p["reversed"][1], p["free"][1])
@@ -432,9 +444,41 @@ def disk_radius(clouds: list[np.ndarray], n: np.ndarray, p: np.ndarray, cam, cfg
     return float(cfg.max_crop_radius_mm)
 
 
+def _refine_plane(pts: np.ndarray, n: np.ndarray, d: float, dist: float, iters: int = 2) -> tuple[np.ndarray, float, int]:
+    """Least squares of the plane n.x + d = 0 on the points within ``dist`` of it (``iters``
+    rounds; the normal keeps its orientation). Returns (n, d, inliers of the last round)."""
+    count = 0
+    for _ in range(iters):
+        inl = np.abs(pts @ n + d) < dist
+        count = int(inl.sum())
+        if count < 3:
+            break
+        q = pts[inl]
+        c = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - c, full_matrices=False)
+        n2 = vt[2] * np.sign(vt[2] @ n)
+        n, d = n2, float(-n2 @ c)
+    return n, d, count
+
+
 def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int],
-                prior_up: np.ndarray) -> tuple[np.ndarray, float, list[np.ndarray]]:
-    """RANSAC the table top on the image centres of a few frames. Returns (n, d, full clouds)."""
+                prior_up: np.ndarray, report: dict | None = None) -> tuple[np.ndarray, float, list[np.ndarray]]:
+    """The turntable top of one arm position. Returns (n, d, full clouds): n.x + d = 0, n towards
+    the camera, and the sampled frames' valid points.
+
+    Candidates: seeded RANSAC planes on the image centres of the sampled frames, level ones (normal
+    within ``plane_prior_max_deg`` of the robot's vertical) holding a fair share of the points,
+    each refined by least squares on all sampled points (a candidate's RANSAC plane is tilted by a
+    few tenths of a degree: several mm across the view). The turntable top is the highest
+    candidate with (almost: ``plane_moving_below``) none of the moving points below it: the
+    objects turn with the table and stand on it, the bench below the turntable stays put, an
+    object's flat top has the rest of the moving object below it. Without enough moving points (a
+    round cup on the axis): the highest candidate with at most ``plane_max_below`` of the image
+    centre below it.
+
+    ``report`` (a dict, filled): ``candidates`` [{d, angle_deg, inliers, moving_below}], the
+    chosen ``d``, and ``problem`` — a sentence when no candidate qualifies (then the largest
+    level plane is returned, and the caller flags the arm: its plane is a guess)."""
     centre, full = [], []
     for k in steps:
         pts = load_points(session, cfg, arm, k)
@@ -443,7 +487,8 @@ def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: l
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(centre).reshape(-1, 3)))
     pc = pc.voxel_down_sample(cfg.voxel_sizes_mm[1])
     cpts = np.asarray(pc.points).copy()
-    cands = []                     # (n, d, inliers) of planes near the vertical prior
+    allp = np.concatenate(full)
+    cands = []                     # (n, d, inliers, angle) of planes near the vertical prior
     first = None
     for it in range(5):   # seeded numpy RANSAC: open3d's segment_plane is not repeatable on several threads
         if len(pc.points) < 100:
@@ -460,41 +505,49 @@ def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: l
         if first is None:
             first = (n, d)
         if ang <= cfg.plane_prior_max_deg:
-            cands.append((n, d, len(inl)))
+            cands.append((n, d, len(inl), ang))
         pc = pc.select_by_index(inl.tolist(), invert=True)
-    # the turntable top is the highest level plane with (almost) nothing that moves below it: the
-    # objects turn with the table and stand on it; the bench below it stays put; an object's flat
-    # top has the rest of the moving object below it
-    moving = _moving_points(session, cfg, arm, steps)
-    ok = []
     big = max((c[2] for c in cands), default=0)
-    for c in cands:
-        if c[2] < max(0.05 * len(cpts), 0.25 * big):
+    level = []
+    for n, d, count, ang in cands:
+        if count < max(0.05 * len(cpts), 0.25 * big):
             continue
-        if len(moving) >= 50:
-            h = moving @ c[0] + c[1]
-            if np.percentile(h, 5) >= -3 * cfg.plane_dist_mm:
-                ok.append(c)
-        elif np.mean(cpts @ c[0] + c[1] < -2 * cfg.plane_dist_mm) <= cfg.plane_max_below:
-            ok.append(c)
+        n, d, _ = _refine_plane(allp, n, d, cfg.plane_dist_mm)
+        if any(abs(d - e[1]) < cfg.plane_dist_mm and e[0] @ n > math.cos(math.radians(1.0)) for e in level):
+            continue       # the same plane found twice (two bands of one tilted plane)
+        level.append((n, d, count, ang))
+    moving = _moving_points(session, cfg, arm, steps)
+    use_moving = len(moving) >= 50
+    rows, ok = [], []
+    for n, d, count, ang in level:
+        if use_moving:
+            below = float(np.mean(moving @ n + d < -3 * cfg.plane_dist_mm))
+            good = below <= cfg.plane_moving_below
+        else:
+            below = float(np.mean(cpts @ n + d < -2 * cfg.plane_dist_mm))
+            good = below <= cfg.plane_max_below
+        rows.append({"d": round(float(d), 2), "angle_deg": round(float(ang), 2), "inliers": int(count),
+                     ("moving_below" if use_moving else "centre_below"): round(below, 4), "ok": bool(good)})
+        if good:
+            ok.append((n, d))
+    problem = ""
     if ok:
-        n, d, _ = min(ok, key=lambda c: c[1])
+        best = min(ok, key=lambda c: c[1])           # the highest: nearest the camera along n
+    elif level:
+        n, d, _, _ = max(level, key=lambda c: c[2])
         best = (n, d)
-    elif cands:
-        n, d, _ = max(cands, key=lambda c: c[2])
-        best = (n, d)
-    else:
+        what = f"{len(moving)} moving points" if use_moving else "the image centre"
+        where = ", ".join(f"{r['d']:.0f}" for r in rows)
+        problem = (f"the table top is ambiguous: none of the {len(level)} level plane(s) in view (at {where} mm "
+                   f"from the camera) has (almost) all of {what} above it")
+    elif first is not None:
         best = first
-    if best is None:
+        problem = "no level plane in view: the table top is a guess (the first RANSAC plane)"
+    else:
         raise TdofError(f"arm {arm}: no table plane found in the {cfg.phase} depth (too few valid points)")
     n, d = best
-    # least-squares refinement on the inliers of all sampled points
-    allp = np.concatenate(full)
-    for _ in range(2):
-        inl = np.abs(allp @ n + d) < cfg.plane_dist_mm
-        q = allp[inl]
-        c = q.mean(axis=0)
-        _, _, vt = np.linalg.svd(q - c, full_matrices=False)
-        n2 = vt[2] * np.sign(vt[2] @ n)
-        n, d = n2, float(-n2 @ c)
+    if not level:       # the level candidates are refined already
+        n, d, _ = _refine_plane(allp, n, d, cfg.plane_dist_mm)
+    if report is not None:
+        report.update({"candidates": rows, "moving_points": int(len(moving)), "d": float(d), "problem": problem})
     return n, d, full
