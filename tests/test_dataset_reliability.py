@@ -226,7 +226,7 @@ def test_every_image_is_checked_before_anything_is_copied(scenes, tmp_path, caps
 def test_scenes_of_two_image_sizes_are_refused(scenes, tmp_path, capsys):
     rc, msg = cli(capsys, "dataset", "build", scenes["single/12"], scenes["single/05@64x48"], "--out", tmp_path / "R")
     assert rc == 2 and msg == (f"error: {scenes['single/12']}: its images are 80x60 (width x height), those of "
-                               f"single/05 ({scenes['single/05@64x48']}) are 64x48: a dataset has one image size")
+                               f"single/cuboid_330 ({scenes['single/05@64x48']}) are 64x48: a dataset has one image size")
     assert not (tmp_path / "R").exists()
 
 
