@@ -120,6 +120,20 @@ def _copy_scene(src: Path, dst: Path) -> None:
         shutil.rmtree(old)
 
 
+def _scene_folders(scene_dirs, out: Path) -> list[Path]:
+    """The scene folders given to a build, checked before anything is written: at least one, each
+    a folder, --out a folder that can hold the dataset, neither inside the other."""
+    dirs = [Path(d) for d in scene_dirs]
+    if not dirs:
+        raise TdofError("give at least one annotated scene folder")
+    check_output_dir(out, "--out", "folder for the dataset")
+    for d in dirs:
+        if not d.is_dir():
+            raise TdofError("no such scene folder", d)
+    _check_not_nested(dirs, out)
+    return dirs
+
+
 def _check_not_nested(dirs: list[Path], out: Path) -> None:
     """Refuse an --out inside a scene folder (the copy would copy itself) and a scene inside --out."""
     o = out.resolve()
@@ -156,14 +170,7 @@ def build_dataset(scene_dirs: list[str | Path], out: str | Path, show_progress: 
     (scenes, models, models_info, splits, targets and dataset_info stay consistent). Everything
     given is checked before anything is written: a refusal leaves ``out`` as it was."""
     out = Path(out)
-    dirs = [Path(d) for d in scene_dirs]
-    if not dirs:
-        raise TdofError("give at least one annotated scene folder")
-    check_output_dir(out, "--out", "folder for the dataset")
-    for d in dirs:
-        if not d.is_dir():
-            raise TdofError("no such scene folder", d)
-    _check_not_nested(dirs, out)
+    dirs = _scene_folders(scene_dirs, out)
 
     # read and check every input
     new: dict[int, tuple[dict, Path]] = {}
@@ -452,14 +459,7 @@ def build_bop_dataset(scene_dirs: list[str | Path], out: str | Path, split: str,
     if split not in PROTOCOLS:
         raise TdofError(f"--layout bop writes one protocol: --split must be one of {', '.join(PROTOCOLS)}, "
                         f"got '{split}'")
-    dirs = [Path(d) for d in scene_dirs]
-    if not dirs:
-        raise TdofError("give at least one annotated scene folder")
-    check_output_dir(out, "--out", "folder for the dataset")
-    for d in dirs:
-        if not d.is_dir():
-            raise TdofError("no such scene folder", d)
-    _check_not_nested(dirs, out)
+    dirs = _scene_folders(scene_dirs, out)
     new: dict[int, tuple[dict, Path]] = {}
     sizes: dict[int, tuple[int, int]] = {}
     scenes = {}

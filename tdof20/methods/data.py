@@ -276,6 +276,18 @@ def input_depth(raw_mm: torch.Tensor, restored_mm: torch.Tensor | None, mode: st
 # the transform
 
 
+def resize_frame(item: Mapping, hw: Sequence[int], depth_mode: str) -> tuple:
+    """A dataset item at the network's size ``hw`` (H, W), the part every method's transform shares:
+    (K scaled (3,3), the input depth of ``depth_mode`` in mm (H,W), colour (3,H,W) in [0,1], the
+    restored depth (H,W) or None when the item has none)."""
+    hw = (int(hw[0]), int(hw[1]))
+    K = scale_intrinsics(item["K"], tuple(item["rgb"].shape[1:]), hw)
+    raw = resize_nearest(item["depth"], hw)
+    rest = item.get("depth_restored")
+    restored = resize_nearest(rest, hw) if rest is not None else None
+    return K, input_depth(raw, restored, depth_mode), resize_colour(item["rgb"], hw), restored
+
+
 class HFFTransform:
     """A dataset item (a :class:`~tdof20.formats.shards.ShardDataset` item or a
     :class:`SceneImages` item) -> network inputs and targets at ``image_size`` (H, W).
@@ -310,13 +322,9 @@ class HFFTransform:
 
     def __call__(self, item: Mapping) -> dict:
         hw = self.image_size
-        src_hw = tuple(item["rgb"].shape[1:])
-        K = scale_intrinsics(item["K"], src_hw, hw)
-        raw = resize_nearest(item["depth"], hw)
-        restored = resize_nearest(item["depth_restored"], hw) if item.get("depth_restored") is not None else None
-        depth = input_depth(raw, restored, self.depth_mode)
+        K, depth, rgb, restored = resize_frame(item, hw, self.depth_mode)
         out = {
-            "rgb": resize_colour(item["rgb"], hw),
+            "rgb": rgb,
             "geo": geometry_map(depth[None], K[None])[0],
             "depth": depth,
             "K": K,

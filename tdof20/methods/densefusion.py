@@ -46,8 +46,7 @@ from torch import nn
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
-from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mode, input_depth, \
-    resize_colour, resize_nearest, scale_intrinsics
+from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mode, resize_frame, resize_nearest
 from tdof20.methods.randla import knn
 
 STAGES = ("seg", "pose", "refine", "joint")
@@ -352,13 +351,7 @@ class DenseFusionTransform:
 
     def __call__(self, item: Mapping) -> dict:
         cfg, hw = self.cfg, self.meta.image_size
-        src_hw = tuple(item["rgb"].shape[1:])
-        K = scale_intrinsics(item["K"], src_hw, hw)
-        raw = resize_nearest(item["depth"], hw)
-        rest = item.get("depth_restored")
-        restored = resize_nearest(rest, hw) if rest is not None else None
-        depth = input_depth(raw, restored, cfg.depth_mode)
-        rgb = resize_colour(item["rgb"], hw)
+        K, depth, rgb, restored = resize_frame(item, hw, cfg.depth_mode)
         out = {"rgb": rgb, "depth": depth, "K": K, "scene_id": int(item.get("scene_id", 0)),
                "im_id": int(item.get("im_id", 0))}
         if "label" in item:

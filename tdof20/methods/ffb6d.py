@@ -52,8 +52,7 @@ from torch import nn
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
-from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mode, input_depth, \
-    resize_colour, resize_nearest, scale_intrinsics
+from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mode, resize_frame, resize_nearest
 from tdof20.methods.fitting import kabsch_torch
 from tdof20.methods.randla import RandLANet, knn_numpy, nearest_interpolation, point_pyramid, random_sample
 
@@ -266,13 +265,7 @@ class FFB6DTransform:
     def __call__(self, item: Mapping) -> dict:
         cfg, hw = self.cfg, self.meta.image_size
         H, W = hw
-        src_hw = tuple(item["rgb"].shape[1:])
-        K = scale_intrinsics(item["K"], src_hw, hw)
-        raw = resize_nearest(item["depth"], hw)
-        rest = item.get("depth_restored")
-        restored = resize_nearest(rest, hw) if rest is not None else None
-        depth = input_depth(raw, restored, cfg.depth_mode)
-        rgb = resize_colour(item["rgb"], hw)
+        K, depth, rgb, restored = resize_frame(item, hw, cfg.depth_mode)
         xyz_map = (backproject(depth, K) / 1000.0).numpy()                   # (H,W,3) m
         from tdof20.geometry.normals import normals_from_xyz
 
