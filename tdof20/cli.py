@@ -661,14 +661,18 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          arm_positions: int = typer.Option(4, help="number of arm positions"),
          width: int = typer.Option(320, help="capture width in pixels"),
          height: int = typer.Option(240, help="capture height in pixels"), seed: int = SEED,
-         train: bool = typer.Option(True, "--train/--no-train", help="train, predict and score HFF6DoF"),
+         train: bool = typer.Option(True, "--train/--no-train", help="train, predict and score the methods"),
+         methods: str = typer.Option("hff6dof,pvnet", help="comma-separated registered methods trained, "
+                                     "predicted and scored side by side"),
          image_size: str = typer.Option("60x80", help="HxW of the short training"),
-         epochs: int = typer.Option(5, help="training epochs"),
+         epochs: Optional[int] = typer.Option(None, help="training epochs of every method [default: hff6dof 5, "
+                                              "pvnet 15]"),
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
-    """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict,
-    score, OUT/report.md (about 2 minutes on 2 idle CPU cores with the defaults; a rerun resumes)."""
-    from tdof20.demo import run_demo
+    """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
+    score HFF6DoF and PVNet side by side, OUT/report.md (3.5 minutes measured at load 1.5-2 on 2 CPU
+    cores with the defaults; a rerun resumes)."""
+    from tdof20.demo import parse_methods, run_demo
 
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:
@@ -678,11 +682,12 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
         raise TdofError("--image-size must be HxW for the demo")
     if steps < 2 or not 0 < step_deg <= 30.0:
         raise TdofError(f"--steps must be >= 2 and --step-deg in (0, 30] (registration), got {steps} and {step_deg}")
-    if batch_size < 1 or epochs < 1:
+    if batch_size < 1 or (epochs is not None and epochs < 1):
         raise TdofError("--batch-size and --epochs must be >= 1")
+    method_names = parse_methods(methods) if train else ()
     run_demo(out, scenes=names, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width,
              height=height, seed=seed, train=train, image_size=size, epochs=epochs, batch_size=batch_size,
-             device=device)
+             device=device, methods=method_names)
 
 
 # ----------------------------------------------------------------------------------- reproduce

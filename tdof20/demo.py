@@ -10,18 +10,22 @@ annotate   the annotation pipeline (``tdof20 annotate``: register, reconstruct, 
            (``OUT/models/``); its accuracy against the simulator's truth -> ``OUT/scenes/<scene>/``
            (BOP scene, ``qa/report.html``, ``work/summary.json``)
 dataset    the annotated scenes gathered into a dataset (BOP layout, both protocols) -> ``OUT/dataset/``
-train      a short HFF6DoF training on the TDoF20-simple train part -> ``OUT/runs/hff6dof_simple/``
-predict    its test part -> ``OUT/results/hff6dof_simple.csv``
-score      ADD(S), 2D projection, AUC -> ``OUT/report/``
+train      a short training of each method (``--methods``, default HFF6DoF and the PVNet baseline) on
+           the TDoF20-simple train part, the same sizes for all -> ``OUT/runs/<method>_simple/``
+predict    their test part -> ``OUT/results/<method>_simple.csv`` (+ ``_info.json``: method, config)
+score      one scorer call with every results file: ADD(S), 2D projection, AUC side by side
+           -> ``OUT/report/`` (``scores.json``: {"<method>_simple": summary, ...} for several methods)
 =========  ====================================================================================
 
-and ``OUT/report.md``: the annotation's accuracy beside the pose scores, the stage times, the
-contact sheet, the loss curves. The defaults take about 1.5 minutes on 2 idle CPU cores (7 on a busy one).
+and ``OUT/report.md``: the annotation's accuracy beside the pose scores of the methods side by side
+(one column each, each with its method/config line), the stage times, the contact sheet, the loss
+curves. The defaults took 3 min 32 s measured at load 1.5–2.0 on 2 CPU cores (HFF6DoF's training
+57 s, PVNet's 80 s; several times that on a busy machine).
 
 The defaults — ``single/juice_cup_340`` (a straight tumbler: trained and scored on) and ``multi/08``
 (a goblet, a tapered juice tumbler, a tall mug and an ice-cream cup, annotated with the CAD models and
 matched to its clusters; the TDoF20-hard test part), 4 arm positions × 16 steps
-of 5° at 320×240, 5 epochs at 60×80 — are what a few minutes of CPU training can learn from: each
+of 5° at 320×240, HFF6DoF 5 epochs and PVNet 15 at 60×80 (:data:`DEFAULT_EPOCHS`) — are what a few minutes of CPU training can learn from: each
 arm position covers an 80° arc and its test arc (2 steps) lies between training views 5° apart.
 With full turns (``--steps 12 --step-deg 30``) the test views are 30° or more from every training
 view, which so short a training does not bridge (ADD(S) 0–25 % in our runs).
@@ -29,7 +33,8 @@ view, which so short a training does not bridge (ADD(S) 0–25 % in our runs).
 Every stage resumes: run the demo again on the same ``--out`` and finished stages are reused
 (capture and annotate resume inside themselves; the dataset is rebuilt, and the stages after it
 redone, only when an annotation changed; training resumes from its checkpoint, or extends the run
-when more epochs are asked for). The data options (scenes, steps, arm positions, capture size,
+when more epochs are asked for; a method added to ``--methods`` is trained alone, the others reused).
+The data options (scenes, steps, arm positions, capture size,
 seed) are recorded in ``OUT/demo.json``; a rerun with other data options is refused.
 """
 
@@ -37,6 +42,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 from tdof20.errors import TdofError
@@ -44,6 +50,12 @@ from tdof20.formats import atomic_write_bytes, read_json, write_json
 from tdof20.progress import console
 
 DEFAULT_SCENES = ("single/juice_cup_340", "multi/08")
+DEFAULT_METHODS = ("hff6dof", "pvnet")
+#: the demo's training epochs per method (others: 5): PVNet's segmentation of 21 classes from RGB
+#: alone needs about three times HFF6DoF's steps at 60×80 (5 epochs: 0 %; 15: ADD(S) 25 % here)
+DEFAULT_EPOCHS = {"hff6dof": 5, "pvnet": 15}
+#: how report.md names a method (others: their registry name)
+LABELS = {"hff6dof": "HFF6DoF", "pvnet": "PVNet", "densefusion": "DenseFusion", "ffb6d": "FFB6D"}
 STAGES = ("capture", "annotate", "dataset", "train", "predict", "score")
 
 
@@ -53,6 +65,40 @@ def _stage(i: int, name: str, what: str) -> None:
 
 def _n(k: int, word: str) -> str:
     return f"{k} {word}" + ("" if k == 1 else "s")
+
+
+def check_methods(methods) -> tuple[str, ...]:
+    """The demo's methods, checked (registered, none twice, at least one) before anything is written;
+    an unknown one is one line listing the known ones."""
+    from tdof20.methods.registry import get_method
+
+    names = tuple(get_method(m).name for m in methods)
+    if not names:
+        raise TdofError("give at least one method (--methods hff6dof,pvnet)")
+    if len(set(names)) != len(names):
+        raise TdofError(f"a method is given twice: {', '.join(names)}")
+    return names
+
+
+def epochs_of(methods: tuple[str, ...], epochs: int | Mapping[str, int] | None) -> dict[str, int]:
+    """Each method's training epochs: ``epochs`` for all, or per method (missing: the defaults)."""
+    per = dict(DEFAULT_EPOCHS) if epochs is None or isinstance(epochs, Mapping) else {}
+    if isinstance(epochs, Mapping):
+        per.update(epochs)
+    out = {m: int(per.get(m, 5) if not isinstance(epochs, (int, float)) else epochs) for m in methods}
+    bad = [f"{m} {e}" for m, e in out.items() if e < 1]
+    if bad:
+        raise TdofError(f"training epochs must be >= 1, got {', '.join(bad)}")
+    return out
+
+
+def parse_methods(text: str) -> tuple[str, ...]:
+    """``--methods hff6dof,pvnet`` -> the checked method names (:func:`check_methods`)."""
+    return check_methods(tuple(x.strip() for x in str(text).split(",") if x.strip()))
+
+
+def label(method: str) -> str:
+    return LABELS.get(method, method)
 
 
 def annotation_warnings(summaries: list[dict]) -> list[str]:
@@ -110,15 +156,18 @@ def annotation_rows(summaries: list[dict]) -> list[str]:
 
 def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: int = 16, step_deg: float = 5.0,
              n_arms: int = 4, width: int = 320, height: int = 240, seed: int = 0, train: bool = True,
-             image_size: tuple[int, int] = (60, 80), epochs: int = 5, batch_size: int = 4, lr: float = 2e-3,
-             device: str = "auto") -> dict:
+             image_size: tuple[int, int] = (60, 80), epochs: int | Mapping[str, int] | None = None,
+             batch_size: int = 4, lr: float = 2e-3,
+             device: str = "auto", methods: tuple[str, ...] = DEFAULT_METHODS) -> dict:
     """Run the demo into ``out``; returns the paths it wrote, the annotation summaries, the scores
     and the seconds each stage took (``timings``).
 
     scenes, steps, step_deg, n_arms, width, height, seed: the simulated capture (registration needs
     turntable steps at most 30° apart and about 12 steps per arm position). ``train=False`` stops
-    after the dataset. ``image_size`` (H, W), ``epochs``, ``batch_size``, ``lr``: the short HFF6DoF
-    training (CPU-sized by default)."""
+    after the dataset. ``methods``: the registered methods trained, predicted and scored side by
+    side (default HFF6DoF and PVNet); ``image_size`` (H, W), ``batch_size``, ``lr``: the short
+    training of each (CPU-sized by default); ``epochs``: one number for every method, a mapping
+    {method: epochs}, or None = :data:`DEFAULT_EPOCHS`."""
     from tdof20.annotate.evaluate import TARGETS
     from tdof20.annotate.config import AnnotateConfig
     from tdof20.annotate.pipeline import annotate, summary_text
@@ -138,6 +187,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     if train and not any(sp.kind == "single" for sp in specs):
         raise TdofError("training uses the TDoF20-simple split: give at least one single-object scene "
                         "(single/<class>, e.g. single/juice_cup_340), or --no-train")
+    methods = check_methods(methods) if train else ()
+    n_epochs = epochs_of(methods, epochs)
     if steps * step_deg > 360.0 + 1e-6:
         raise TdofError(f"--steps {steps} × --step-deg {step_deg} is more than one turn")
     opts = {"scenes": list(scenes), "steps": steps, "step_deg": step_deg, "n_arms": n_arms, "width": width,
@@ -237,71 +288,95 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         return result
 
     # train, predict, score ----------------------------------------------------------------
-    from tdof20.benchmark.scoring import score_command
+    from tdof20.benchmark.scoring import run_info, run_line, score_command
     from tdof20.methods.predict import predict
-    from tdof20.methods.train import train as train_hff
+    from tdof20.methods.train import train as train_method
 
-    run = out / "runs" / "hff6dof_simple"
-    _stage(4, "train", f"HFF6DoF, {_n(epochs, 'epoch')} at {image_size[0]}×{image_size[1]}, "
-                       f"{sp['simple_train']} images")
-    t0 = time.perf_counter()
-    hist = run / "history.json"
-    done = ((run / "last.pt").exists() and hist.exists()
-            and (read_json(hist).get("epochs") or [{}])[-1].get("epoch", 0) >= epochs)
-    if done:
-        console.print(f"train: {run} has its {_n(epochs, 'epoch')} already")
-    else:
-        train_hff(root, "simple", run, image_size=image_size, batch_size=batch_size, epochs=epochs, lr=lr,
-                  device=device, num_workers=1, seed=seed)
-    took("train", t0, not done)
+    names = ", ".join(label(m) for m in methods)
+    _stage(4, "train", ", ".join(f"{label(m)} {_n(n_epochs[m], 'epoch')}" for m in methods)
+           + f" at {image_size[0]}×{image_size[1]}, {sp['simple_train']} images")
+    runs, hists = {}, {}
+    for m in methods:
+        t0 = time.perf_counter()
+        run = runs[m] = out / "runs" / f"{m}_simple"
+        hist = run / "history.json"
+        done = ((run / "last.pt").exists() and hist.exists()
+                and (read_json(hist).get("epochs") or [{}])[-1].get("epoch", 0) >= n_epochs[m])
+        if done:
+            console.print(f"train {m}: {run} has its {_n(n_epochs[m], 'epoch')} already")
+        else:
+            console.print(f"[bold]train {label(m)}[/bold] -> {run}")
+            train_method(root, "simple", run, method=m, image_size=image_size, batch_size=batch_size,
+                         epochs=n_epochs[m], lr=lr, device=device, num_workers=1, seed=seed)
+        took(f"train/{m}", t0, not done)
+        hists[m] = read_json(hist)["epochs"]
 
-    _stage(5, "predict", f"TDoF20-simple test part, {sp['simple_test']} images")
-    t0 = time.perf_counter()
-    results = out / "results" / "hff6dof_simple.csv"
-    fresh = not results.exists() or results.stat().st_mtime < (run / "last.pt").stat().st_mtime
-    if fresh:
-        predict(run, root, "simple", results, device=device, num_workers=1, seed=seed)
-    else:
-        console.print(f"predict: {results} is newer than the run's checkpoint")
-    took("predict", t0, fresh)
+    _stage(5, "predict", f"{names}: TDoF20-simple test part, {sp['simple_test']} images")
+    results, infos = {}, {}
+    for m in methods:
+        t0 = time.perf_counter()
+        csv = results[m] = out / "results" / f"{m}_simple.csv"
+        fresh = not csv.exists() or csv.stat().st_mtime < (runs[m] / "last.pt").stat().st_mtime
+        if fresh:
+            predict(runs[m], root, "simple", csv, device=device, num_workers=1, seed=seed)
+        else:
+            console.print(f"predict {m}: {csv} is newer than the run's checkpoint")
+        took(f"predict/{m}", t0, fresh)
+        infos[m] = read_json(csv.with_name(csv.stem + "_info.json"))
 
-    _stage(6, "score", "ADD(S), 2D projection, AUC")
+    _stage(6, "score", f"{names} side by side: ADD(S), 2D projection, AUC")
     t0 = time.perf_counter()
     report_dir = out / "report"
     scores_json = report_dir / "scores.json"
-    text = score_command([results], root, "simple", None, scores_json, report_dir)
+    text = score_command([results[m] for m in methods], root, "simple", None, scores_json, report_dir)
     took("score", t0, True)
-    scores = read_json(scores_json)
-    info = read_json(results.with_name(results.stem + "_info.json"))
+    got = read_json(scores_json)  # one results file: its summary; several: {csv stem: summary}
+    scores = {m: got[results[m].stem] if len(methods) > 1 else got for m in methods}
     timings["total"] = sum(timings.values())
     write_json(out / "timings.json", {k: round(v, 2) for k, v in timings.items()})
-    hist_ep = read_json(hist)["epochs"]
     n_test = sp["simple_test"] // max(1, n_arms * sum(sp_.kind == "single" for sp_ in specs))
-    m = scores["mean"]
+
+    def row(what: str, fn) -> str:
+        return f"| {what} | " + " | ".join(fn(m) for m in methods) + " |"
+
+    def pct(key: str):
+        return lambda m: f"{100 * scores[m]['mean'][key]:.1f} %"
+
     md = header + [
-        "## HFF6DoF on TDoF20-simple",
+        f"## Pose estimation on TDoF20-simple: {' beside '.join(label(m) for m in methods)}",
         "",
-        f"Trained {hist_ep[-1]['epoch']} epochs at {image_size[0]}×{image_size[1]} on the simple train part "
-        f"({timings['train']:.0f} s; last epoch's loss {hist_ep[-1]['loss']:.3f}, first epoch's "
-        f"{hist_ep[0]['loss']:.3f}); prediction {info['network_ms_per_image']:.0f} ms network + "
-        f"{info['pose_ms_per_image']:.0f} ms pose recovery per image on {info['device']}.", "",
-        "| metric (TDoF20-simple test, mean over objects) | value |", "| --- | ---: |",
-        f"| ADD(S) < 10 % diameter | {100 * m['add_s']:.1f} % |",
-        f"| 2D projection < 5 px | {100 * m['proj2d']:.1f} % |",
-        f"| AUC of ADD(S) (0–100 mm) | {100 * m['auc_add_s']:.1f} % |",
-        f"| test targets / poses predicted | {scores['all']['n']} / {info['predictions']} |", "",
+        f"Each method trained at {image_size[0]}×{image_size[1]} (batch {batch_size}, "
+        f"lr {lr:g}) on the simple train part ({sp['simple_train']} images), then predicted its test part "
+        f"({sp['simple_test']} images) and scored by one scorer call (`tdof20 benchmark score`).", "",
+        "| TDoF20-simple test, mean over objects | " + " | ".join(label(m) for m in methods) + " |",
+        "| --- |" + " ---: |" * len(methods),
+        row("ADD(S) < 10 % diameter", pct("add_s")),
+        row("2D projection < 5 px", pct("proj2d")),
+        row("AUC of ADD(S) (0–100 mm)", pct("auc_add_s")),
+        row("test targets / poses predicted", lambda m: f"{scores[m]['all']['n']} / {infos[m]['predictions']}"),
+        row("input", lambda m: f"{infos[m].get('input', '?')}, depth {infos[m].get('depth_mode', '?')}"),
+        row("training: epochs, time", lambda m: f"{hists[m][-1]['epoch']}, {timings[f'train/{m}']:.0f} s"),
+        row("loss, first → last epoch", lambda m: f"{hists[m][0]['loss']:.3f} → {hists[m][-1]['loss']:.3f}"),
+        row("prediction per image (network + pose recovery)",
+            lambda m: f"{infos[m]['network_ms_per_image']:.0f} + {infos[m]['pose_ms_per_image']:.0f} ms "
+                      f"({infos[m]['device']})"), "",
+        "How each results file was made (method, input, depth, masks, config):", "",
+        *[f"- {run_line(results[m].stem, run_info(results[m]) or {})}" for m in methods], "",
         f"A short CPU training on {sp['simple_train']} images: the numbers show that the chain works and that "
-        "the network learns, not the method's accuracy (the paper trains on 26,434 images at 480×640 and "
+        "the networks learn, not the methods' accuracy (the paper trains on 26,434 images at 480×640 and "
         f"tests on 54° arcs). Here each arm position's test arc is {n_test} step(s) of {step_deg:g}° between "
         "training views; an untrained network finds no object (0 %).", "",
-        "Stage times (s; a reused stage keeps the time it took when it ran): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), "",
-        "![contact sheet](contact_sheet.png)", "", "![loss curves](runs/hff6dof_simple/loss.png)", "",
-        "Scores per object: report/report.md; accuracy curves: report/*.png; results: results/hff6dof_simple.csv.",
+        "Stage times (s; a reused stage keeps the time it took when it ran): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), "",
+        "![contact sheet](contact_sheet.png)", "",
+        *[x for m in methods for x in (f"![{label(m)} loss curves](runs/{m}_simple/loss.png)", "")],
+        "Scores per object: report/report.md; accuracy curves: report/*.png; results: "
+        + ", ".join(f"results/{results[m].name}" for m in methods) + ".",
         ""]
     atomic_write_bytes(report, "\n".join(md).encode())
     console.print(text, highlight=False)
     console.rule("[bold]demo done")
     console.print("stage times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     console.print(f"report: {report}")
-    result.update(run=run, results=results, scores=scores, report=report)
+    result.update(methods=methods, runs=runs, results=results, scores=scores, report=report)
     return result

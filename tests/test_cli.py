@@ -110,6 +110,7 @@ def test_sim_frames(tmp_path):
     one_line_error(run("sim", "frames", "--arm", "9", "--out", tmp_path), "--arm")
 
 
+@pytest.mark.timeout(900)  # the whole demo at tiny sizes: ~80 s idle, several times that beside other tests
 def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     demo = tmp_path / "demo"
     # the smallest session registration handles: 2 arm positions x 12 steps of 5 deg
@@ -122,6 +123,7 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
               "scenes/single_juice_cup_340/qa/report.html", "scenes/single_juice_cup_340/work/summary.json",
               "contact_sheet.png", "report.md", "timings.json",
               "runs/hff6dof_simple/loss.png", "runs/hff6dof_simple/last.pt", "results/hff6dof_simple.csv",
+              "runs/pvnet_simple/loss.png", "runs/pvnet_simple/last.pt", "results/pvnet_simple.csv",
               "report/scores.json", "report/accuracy_add_s.png"):
         assert (demo / f).exists(), f
     out = res.stderr + res.stdout
@@ -137,16 +139,24 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     report = (demo / "report.md").read_text()
     assert "ADD(S)" in report and "Annotation" in report and "visible-mask IoU" in report
     assert f"{ev['iou_visib']['median']:.3f}" in report and f"{ev['surface_mm']['median']:.2f} mm" in report
+    # HFF6DoF and PVNet side by side: one scorer call, both in the table, each with its run line
     scores = json.loads((demo / "report/scores.json").read_text())
-    assert scores["all"]["n"] > 0 and 0.0 <= scores["mean"]["add_s"] <= 1.0
+    assert set(scores) == {"hff6dof_simple", "pvnet_simple"}
+    for name, s in scores.items():
+        assert s["all"]["n"] > 0 and 0.0 <= s["mean"]["add_s"] <= 1.0 and s["run"]["method"] == name.split("_")[0]
+    assert "| TDoF20-simple test, mean over objects | HFF6DoF | PVNet |" in report
+    assert "- hff6dof_simple: method hff6dof (rgbd)" in report and "- pvnet_simple: method pvnet (rgb)" in report
+    assert "runs/pvnet_simple/loss.png" in report
     timings = json.loads((demo / "timings.json").read_text())
-    assert set(timings) == {"capture", "annotate", "dataset", "train", "predict", "score", "total"}
+    assert set(timings) == {"capture", "annotate", "dataset", "train/hff6dof", "train/pvnet", "predict/hff6dof",
+                            "predict/pvnet", "score", "total"}
     # a rerun resumes: every stage is reused
     mtime = (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime
     res = run("demo", "--out", demo, *opts)
     assert res.returncode == 0, res.stderr
     out = res.stderr + res.stdout
-    assert out.count("up to date") == 6 and "has its 1 epoch already" in out and "newer than the run" in out
+    assert out.count("up to date") == 6 and out.count("has its 1 epoch already") == 2
+    assert out.count("newer than the run") == 2
     assert (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime == mtime
     # other data options on the same folder are refused
     # the alias single/12 is the same scene: the data options are compared, not the spelling
@@ -154,6 +164,13 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     one_line_error(run("demo", "--out", tmp_path / "d2", "--scenes", "multi/08"), "single-object")
     one_line_error(run("demo", "--out", tmp_path / "d3", "--scenes", "single/99"), "single/99")
     one_line_error(run("demo", "--out", tmp_path / "d4", "--step-deg", "60"), "--step-deg")
+    from tdof20.demo import run_demo
+    from tdof20.errors import TdofError  # an unknown method: one line naming the known ones, nothing written
+    with pytest.raises(TdofError, match=r"unknown method 'posecnn' \(known: hff6dof, pvnet"):
+        run_demo(tmp_path / "d5", methods=("hff6dof", "posecnn"))
+    one_line_error(run("demo", "--out", tmp_path / "d6", "--methods", "posecnn"), "posecnn", "hff6dof")
+    assert not (tmp_path / "d6").exists()
+    assert not (tmp_path / "d5").exists()
     root, run_dir = demo / "dataset", demo / "runs/hff6dof_simple"
     # train resumes and extends the demo's run; predict and score the other way of voting
     res = run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir, "--image-size", "48x64",
