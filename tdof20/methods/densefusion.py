@@ -122,25 +122,36 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
 # networks
 
 
-class PoseNetFeat(nn.Module):
-    """PointNet + dense fusion of the original: x (B,3,N), emb (B,32,N) -> (B,1408,N)."""
+class _PointFusionFeat(nn.Module):
+    """The two fusion stages both DenseFusion feature nets start with (PointNet on the points, 1x1
+    convolutions on the colour embedding, concatenated after each): x (B,3,N), emb (B,32,N) ->
+    f1 (B,128,N), f2 (B,256,N). ``conv5_in``: the channels the subclass's conv5 takes."""
 
-    def __init__(self, emb_dim: int = 32):
+    def __init__(self, emb_dim: int, conv5_in: int):
         super().__init__()
         self.conv1 = nn.Conv1d(3, 64, 1)
         self.conv2 = nn.Conv1d(64, 128, 1)
         self.e_conv1 = nn.Conv1d(emb_dim, 64, 1)
         self.e_conv2 = nn.Conv1d(64, 128, 1)
-        self.conv5 = nn.Conv1d(256, 512, 1)
+        self.conv5 = nn.Conv1d(conv5_in, 512, 1)
         self.conv6 = nn.Conv1d(512, 1024, 1)
 
-    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+    def fuse(self, x: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = F.relu(self.conv1(x))
         emb = F.relu(self.e_conv1(emb))
         f1 = torch.cat([x, emb], 1)
-        x = F.relu(self.conv2(x))
-        emb = F.relu(self.e_conv2(emb))
-        f2 = torch.cat([x, emb], 1)
+        f2 = torch.cat([F.relu(self.conv2(x)), F.relu(self.e_conv2(emb))], 1)
+        return f1, f2
+
+
+class PoseNetFeat(_PointFusionFeat):
+    """PointNet + dense fusion of the original: x (B,3,N), emb (B,32,N) -> (B,1408,N)."""
+
+    def __init__(self, emb_dim: int = 32):
+        super().__init__(emb_dim, 256)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        f1, f2 = self.fuse(x, emb)
         g = F.relu(self.conv6(F.relu(self.conv5(f2)))).mean(2, keepdim=True)   # AvgPool1d(num_points)
         return torch.cat([f1, f2, g.expand(-1, -1, x.shape[2])], 1)
 
@@ -189,25 +200,14 @@ class PoseNet(nn.Module):
         return r, t, c, emb.detach()
 
 
-class PoseRefineNetFeat(nn.Module):
+class PoseRefineNetFeat(_PointFusionFeat):
     """x (B,3,N), emb (B,32,N) -> (B,1024) global feature."""
 
     def __init__(self, emb_dim: int = 32):
-        super().__init__()
-        self.conv1 = nn.Conv1d(3, 64, 1)
-        self.conv2 = nn.Conv1d(64, 128, 1)
-        self.e_conv1 = nn.Conv1d(emb_dim, 64, 1)
-        self.e_conv2 = nn.Conv1d(64, 128, 1)
-        self.conv5 = nn.Conv1d(384, 512, 1)
-        self.conv6 = nn.Conv1d(512, 1024, 1)
+        super().__init__(emb_dim, 384)
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
-        x = F.relu(self.conv1(x))
-        emb = F.relu(self.e_conv1(emb))
-        f1 = torch.cat([x, emb], 1)
-        x = F.relu(self.conv2(x))
-        emb = F.relu(self.e_conv2(emb))
-        f2 = torch.cat([x, emb], 1)
+        f1, f2 = self.fuse(x, emb)
         x = F.relu(self.conv6(F.relu(self.conv5(torch.cat([f1, f2], 1)))))
         return x.mean(2)
 
