@@ -670,7 +670,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
-    score HFF6DoF and PVNet side by side, OUT/report.md (3.5 minutes measured at load 1.5-2 on 2 CPU
+    score HFF6DoF and PVNet side by side, OUT/report.md (about 3 minutes measured on 2 idle CPU
     cores with the defaults; a rerun resumes)."""
     from tdof20.demo import parse_methods, run_demo
 
