@@ -128,6 +128,11 @@ def _init_worker(fn: Callable) -> None:
     # Ctrl-C reaches the whole process group: the parent alone handles it (it cancels the queued
     # chunks and lets the running ones finish), so a worker never dies half-way through a file
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # one open3d thread a worker: the pool already has a worker a core (OMP_NUM_THREADS does not
+    # reach open3d's own thread pool)
+    from tdof20.o3d import o3d
+
+    o3d.utility.set_max_threads(1)
 
 
 def _call_worker(chunk: Any) -> Any:
