@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -184,6 +185,30 @@ REGISTER = Stage(
 # ---------------------------------------------------------------------------------------------
 # reconstruct
 # ---------------------------------------------------------------------------------------------
+_FUSE_PREFETCH = 4      # depth images loaded ahead of the TSDF (each 640x480 float32: 1.2 MB)
+
+
+def ordered_prefetch(fn: Callable, items: list, ahead: int = 4, threads: int = 2) -> Iterator:
+    """``fn(item)`` for each item, in order, computed on ``threads`` threads at most ``ahead``
+    items ahead of the consumer (so at most ``ahead`` results wait in memory). An exception of
+    ``fn`` is raised when its item's turn comes; the rest is cancelled when the consumer stops."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
+        it = iter(items)
+        pending: deque = deque(ex.submit(fn, x) for x in itertools.islice(it, max(1, ahead)))
+        try:
+            while pending:
+                result = pending.popleft().result()
+                for x in itertools.islice(it, 1):
+                    pending.append(ex.submit(fn, x))
+                yield result
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+
 def _reconstruct(ctx: StageContext) -> dict:
     reg = RegistrationResult.load(ctx.reg_file)
     s = ctx.session
@@ -191,28 +216,36 @@ def _reconstruct(ctx: StageContext) -> dict:
     used: list[list[int]] = []
     problems: list[dict] = []
 
+    def load(f) -> tuple[np.ndarray | None, str | None]:
+        """(cropped depth, None), (None, problem), or (None, None) for a frame never captured."""
+        if not s.has_frame("opaque", f.arm, f.step):
+            return None, None
+        try:
+            z = s.load_depth_mm("opaque", f.arm, f.step, verify=True)
+        except TdofError as e:
+            return None, str(e)
+        if not np.any(z):
+            return None, "the opaque depth is all zero"
+        if ctx.cfg.fuse_crop:
+            z = crop_depth(z, s.info.camera, f.T_ref_frame, a0.axis_point, up,
+                           ctx.cfg.reconstruct.crop_radius_mm + 20.0, ctx.cfg.fuse_max_height_mm)
+        return z, None
+
     def frames():
-        # one depth image at a time: the TSDF integrates each and drops it
+        # one depth image at a time: the TSDF integrates each and drops it. The next few are read,
+        # checked, decoded and cropped on threads meanwhile (the checksum, the PNG decoder and
+        # numpy let go of the GIL), in order, so the same frames go in as one by one.
         from tdof20.progress import progress as _progress
 
         with _progress(ctx.progress, unit="fr") as bar:
             task = bar.add_task("fuse (TSDF)", total=len(todo))
-            for f in todo:
+            for f, (z, problem) in zip(todo, ordered_prefetch(load, todo, ahead=_FUSE_PREFETCH)):
                 bar.advance(task)
-                if not s.has_frame("opaque", f.arm, f.step):
-                    continue
-                try:
-                    z = s.load_depth_mm("opaque", f.arm, f.step, verify=True)
-                except TdofError as e:
-                    problems.append({"arm": f.arm, "step": f.step, "problem": str(e)})
-                    continue
-                if not np.any(z):
-                    problems.append({"arm": f.arm, "step": f.step, "problem": "the opaque depth is all zero"})
+                if problem is not None:
+                    problems.append({"arm": f.arm, "step": f.step, "problem": problem})
+                if z is None:
                     continue
                 used.append([f.arm, f.step])
-                if ctx.cfg.fuse_crop:
-                    z = crop_depth(z, s.info.camera, f.T_ref_frame, a0.axis_point, up,
-                                   ctx.cfg.reconstruct.crop_radius_mm + 20.0, ctx.cfg.fuse_max_height_mm)
                 yield z, f.T_ref_frame
 
     a0 = reg.arms[0]
