@@ -43,14 +43,16 @@ import cv2
 import numpy as np
 
 from tdof20.annotate.executors import EXECUTORS, process_cache, resolve_workers, run_chunks
+from tdof20.annotate.pngread import decode_png_fast
 from tdof20.config import check_ranges
 from tdof20.errors import TdofError
 from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes,
-                            decode_png, dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
+                            dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
                             sha256_bytes, write_png)
 from tdof20.formats.io import png_header
 from tdof20.formats.session import frame_size_problem
 from tdof20.geometry import PinholeCamera
+from tdof20.geometry.raycast import BoxRender
 
 METHODS = ("raycast", "far_to_near")
 IMAGE_DIRS = ("rgb", "depth", "depth_opaque", "depth_restored")
@@ -271,7 +273,7 @@ class _LabelJob:
                             f"from what the journal recorded", p)
         img = None
         if decode or not self.cfg.verify:
-            img = decode_png(data, p, kind)
+            img = decode_png_fast(data, p, kind)   # decode_png's array and errors, faster on our PNGs
             h, w = img.shape[:2]
         else:   # copied as it is: its header must still say what the scene's readers expect
             h, w = png_header(p, kind, data)
@@ -297,20 +299,29 @@ class _LabelJob:
 
         T_frame_ref = np.linalg.inv(np.asarray(T_ref_frame, np.float64))
         poses = [(obj_id, T_frame_ref @ T_ref_model) for obj_id, T_ref_model in self.placements]
-        lab = self.render(st, self.cfg.method, poses)
+        cam = st.camera
+        h, w = cam.height, cam.width
+        # the labels of a frame are worked on in the box around the objects (outside it nothing is
+        # seen): the same numbers as over the whole image, for a fraction of its pixels
+        if self.cfg.method == "raycast":
+            lab = st.raycaster.render_box(poses)
+        else:
+            whole = self.render(st, self.cfg.method, poses)
+            lab = BoxRender((0, h, 0, w), (h, w), whole.full, whole.visible, whole.depth)
         cmp = None
         if compare:
             other = "far_to_near" if self.cfg.method == "raycast" else "raycast"
             lab2 = self.render(st, other, poses)
-            exact, painter = (lab, lab2) if self.cfg.method == "raycast" else (lab2, lab)
+            exact, painter = (lab.whole(), lab2) if self.cfg.method == "raycast" else (lab2, lab.whole())
             cmp = _compare(exact, painter, len(poses))
         t2 = time.perf_counter()
 
-        cam = st.camera
         gate = None
         if self.cfg.gate and opaque is not None:
-            exact = lab if self.cfg.method == "raycast" else st.raycaster.render(poses)
-            gate = gate_check(exact, opaque.astype(np.float32) * np.float32(cam.depth_scale), self.cfg)
+            exact = lab if self.cfg.method == "raycast" else st.raycaster.render_box(poses)
+            ev0, ev1, eu0, eu1 = exact.box
+            gate = gate_check(exact, opaque[ev0:ev1, eu0:eu1].astype(np.float32) * np.float32(cam.depth_scale),
+                              self.cfg)
             failed = [(g, poses[g][0], c) for g, c in enumerate(gate) if c["ok"] is False]
             if failed:
                 res.update(status="skipped", gate=gate, reason="label gate: " + "; ".join(
@@ -318,14 +329,16 @@ class _LabelJob:
                     f"pixels within {self.cfg.gate_tol_mm:g} mm, {c['see_through']:.0%} see through it"
                     for g, o, c in failed))
                 return res
+        v0, v1, u0, u1 = lab.box
         hit = lab.visible >= 0
-        restored = np.zeros((cam.height, cam.width), np.uint16) if opaque is None else opaque.copy()
-        restored[hit] = cam.mm_to_depth(lab.depth[hit])
+        restored = np.zeros((h, w), np.uint16) if opaque is None else opaque.copy()
+        restored[v0:v1, u0:u1][hit] = cam.mm_to_depth(lab.depth[hit])
         visib = [(lab.visible == i) & full for i, full in enumerate(lab.full)]
         gt, gt_info = [], []
+        depth_box = depth[v0:v1, u0:u1]
         for (obj_id, T), full, vis in zip(poses, lab.full, visib):
             gt.append(pose_to_bop(T[:3, :3], T[:3, 3], obj_id=int(obj_id)))
-            gt_info.append(_gt_info(full, vis, depth))
+            gt_info.append(_gt_info(full, vis, depth_box, offset=(u0, v0)))
         T_w2c = T_frame_ref
         camera = {"cam_K": [float(x) for x in cam.K.reshape(-1)], "depth_scale": float(cam.depth_scale),
                   "cam_R_w2c": [float(x) for x in T_w2c[:3, :3].reshape(-1)],
@@ -343,8 +356,10 @@ class _LabelJob:
             (out / "depth_opaque" / name).unlink(missing_ok=True)
         write_png(out / "depth_restored" / name, restored, c)
         for g, (full, vis) in enumerate(zip(lab.full, visib)):
-            write_png(out / "mask" / f"{im_id:06d}_{g:06d}.png", full.view(np.uint8) * np.uint8(255), c)
-            write_png(out / "mask_visib" / f"{im_id:06d}_{g:06d}.png", vis.view(np.uint8) * np.uint8(255), c)
+            for sub, m in (("mask", full), ("mask_visib", vis)):
+                img = np.zeros((h, w), np.uint8)
+                img[v0:v1, u0:u1] = m.view(np.uint8) * np.uint8(255)
+                write_png(out / sub / f"{im_id:06d}_{g:06d}.png", img, c)
         for sub in MASK_DIRS:  # a frame written before with more instances: drop the stale masks
             g = len(poses)
             while (p := out / sub / f"{im_id:06d}_{g:06d}.png").exists():
@@ -363,11 +378,15 @@ def gate_check(lab, opaque_mm: np.ndarray, cfg: LabelConfig) -> list[dict]:
     eroded by one pixel, with opaque depth), ``agree`` (share within ``gate_tol_mm`` of the
     model's ray-cast depth), ``see_through`` (share where the opaque depth is more than
     ``gate_tol_mm`` behind it), ``median_mm`` (median |difference|) and ``ok`` (True, False, or
-    None when too few pixels to judge)."""
+    None when too few pixels to judge). ``lab``: a LabelRender with ``opaque_mm`` (H,W), or a
+    BoxRender with ``opaque_mm`` cut to its box (its margin makes the erosion the same)."""
     out = []
     kernel = np.ones((3, 3), np.uint8)
     tol = float(cfg.gate_tol_mm)
     for i in range(len(lab.full)):
+        if lab.visible.size == 0:   # an empty box: nothing seen
+            out.append({"pixels": 0, "agree": None, "see_through": None, "median_mm": None, "ok": None})
+            continue
         vis = cv2.erode((lab.visible == i).view(np.uint8), kernel).view(bool)
         pix = vis & (opaque_mm > 0)
         n = int(np.count_nonzero(pix))
@@ -383,16 +402,17 @@ def gate_check(lab, opaque_mm: np.ndarray, cfg: LabelConfig) -> list[dict]:
     return out
 
 
-def _gt_info(full: np.ndarray, vis: np.ndarray, depth: np.ndarray) -> dict:
+def _gt_info(full: np.ndarray, vis: np.ndarray, depth: np.ndarray, offset: tuple[int, int] = (0, 0)) -> dict:
     """:func:`gt_info_from_masks` of an instance computed on the bounding box of its masks (the
-    same numbers, without several passes over the whole image)."""
-    x, y, w, h = cv2.boundingRect(full.view(np.uint8))
-    if w == 0 or h == 0:
-        x, y, w, h = 0, 0, 1, 1
+    same numbers, without several passes over the whole image). The arrays may be a box of the
+    image whose top-left pixel is ``offset`` (u, v): the boxes are given in the whole image."""
+    x, y, w, h = cv2.boundingRect(full.view(np.uint8)) if full.size else (0, 0, 0, 0)
+    if w == 0 or h == 0:   # no silhouette: every count 0, both boxes empty, whatever the pixel
+        return gt_info_from_masks(np.zeros((1, 1), bool), np.zeros((1, 1), bool), np.zeros((1, 1), np.uint16))
     info = gt_info_from_masks(full[y:y + h, x:x + w], vis[y:y + h, x:x + w], depth[y:y + h, x:x + w])
     for k in ("bbox_obj", "bbox_visib"):
         if info[k] != EMPTY_BBOX:
-            info[k] = [info[k][0] + x, info[k][1] + y, info[k][2], info[k][3]]
+            info[k] = [info[k][0] + x + offset[0], info[k][1] + y + offset[1], info[k][2], info[k][3]]
     return info
 
 
