@@ -12,6 +12,7 @@ import io
 import json
 
 import pytest
+import torch
 
 from tdof20.benchmark import reproduce as R
 from tdof20.benchmark.reproduce import make_config, reproduce, validation_images
@@ -24,43 +25,79 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 TEST = {"methods": ["pvnet", "densefusion", "ffb6d", "hff6dof"],
         "data": {"scenes": ["single/12", "multi/08"], "steps": 7, "step_deg": 5.0, "n_arms": 2, "width": 64,
                  "height": 48},
-        "train": {"image_size": [32, 48], "batch_size": 4, "max_steps": 1, "num_workers": 0},
-        "epochs": {"hff6dof": 1, "pvnet": 1, "densefusion": 1, "ffb6d": 1},
+        "train": {"image_size": [32, 48], "batch_size": 8, "max_steps": 0, "num_workers": 0},
+        "epochs": {"hff6dof": 1, "pvnet": 2, "densefusion": 1, "ffb6d": 1},
         "ablations": {"fuse_stages": [1, 3], "segmentation": True, "voting_3d": True},
         "profile": {"enabled": False}, "device": "cpu",
         "method_options": {"ffb6d": {"n_points": 256, "meanshift_iters": 5, "max_votes": 200},
                            "densefusion": {"n_points": 100, "crop_size": 32, "min_points": 10},
-                           "pvnet": {"max_rounds": 2}, "hff6dof": {"n_hyp": 32, "max_points": 200}}}
+                           "pvnet": {"max_rounds": 2}, "hff6dof": {"n_hyp": 32, "max_points": 200}},
+        "candidates": {"pvnet": {"inlier_cos": [0.99, 0.9]}}}
 
 
 class Killed(RuntimeError):
     pass
 
 
+#: validation figures the test imposes (on top of the real scorer's, which a one-step training
+#: leaves at 0 % everywhere, so that every choice would be a tie): (run, step) -> ADD(S) for the
+#: epochs, (run, inlier_cos) for PVNet's candidates, run -> ADD(S) for HFF6DoF's two rows
+VAL_EPOCH = {("pvnet_simple", 2): 0.5, ("pvnet_simple", 1): 0.25, ("pvnet_hard", 1): 0.5, ("pvnet_hard", 2): 0.25}
+VAL_OPTION = {("pvnet_simple", 0.9): 0.75, ("pvnet_hard", 0.99): 0.75}
+VAL_ROW = {"hff6dof-3d_hard": 0.5, "hff6dof_simple": 0.5}
+
+
 @pytest.fixture(scope="module")
 def done(tmp_path_factory):
-    """A reproduce killed in its third training, then resumed to the end; the trainings called."""
+    """A reproduce killed in its fourth training call (PVNet on hard, its second epoch, after its
+    first epoch was validated), then resumed to the end; every training, prediction and scoring
+    call logged with its part, and the jobs' ends in the same log."""
     out = tmp_path_factory.mktemp("repro") / "out"
-    calls: list[str] = []
-    real = R.train_run
+    calls: list[tuple] = []
+    log: list[tuple] = []
+    real_train, real_predict, real_score, real_finish = R.train_run, R.predict_run, R.score_run, R.State.finish
 
-    def flaky(root, split, run, method, cfg, epochs, show, **options):
-        calls.append(run.name)
-        if len(calls) == 3:
+    def flaky(root, split, run, method, cfg, epochs, show, stop_epoch=None, **options):
+        calls.append((run.name, stop_epoch))
+        if len(calls) == 4:
             raise Killed("simulated kill")
-        return real(root, split, run, method, cfg, epochs, show, **options)
+        return real_train(root, split, run, method, cfg, epochs, show, stop_epoch=stop_epoch, **options)
+
+    def predict(run, root, split, out_csv, cfg, show, part="test", images=None, **options):
+        log.append(("predict", part, out_csv.parent.name if part == "val" else out_csv.stem, out_csv.name, options))
+        return real_predict(run, root, split, out_csv, cfg, show, part=part, images=images, **options)
+
+    def scorer(results_csv, root, split, part="test", targets=None):
+        s = real_score(results_csv, root, split, part=part, targets=targets)
+        log.append(("score", part, results_csv.parent.name if part == "val" else results_csv.stem))
+        if part == "val":
+            name = results_csv.parent.name
+            info = read_json(results_csv.with_name(results_csv.stem + "_info.json"))
+            step = int(results_csv.stem[4:10])
+            cos = info["method_config"].get("inlier_cos")
+            s["mean"]["add_s"] = (VAL_EPOCH.get((name, step), 0.0) + VAL_OPTION.get((name, cos), 0.0)
+                                  + VAL_ROW.get(name, 0.0))
+        return s
+
+    def finish(self, job, seconds, **info):
+        log.append(("done", job))
+        return real_finish(self, job, seconds, **info)
 
     mp = pytest.MonkeyPatch()
     mp.setattr(R, "train_run", flaky)
+    mp.setattr(R, "predict_run", predict)
+    mp.setattr(R, "score_run", scorer)
+    mp.setattr(R.State, "finish", finish)
     try:
         with pytest.raises(Killed):
             reproduce(out, config=TEST, progress=False)
         state = read_json(out / "reproduce.json")
         first = dict(state["jobs"])
+        first_val = json.loads(json.dumps(state.get("validation", {})))
         md = reproduce(out, config=TEST, progress=False)
     finally:
         mp.undo()
-    return {"out": out, "md": md, "calls": calls, "first": first}
+    return {"out": out, "md": md, "calls": calls, "first": first, "first_val": first_val, "log": log}
 
 
 def test_end_to_end_tables_hold_every_method_and_object(done):
@@ -89,9 +126,15 @@ def test_end_to_end_tables_hold_every_method_and_object(done):
 def test_resume_after_a_kill_reuses_finished_work(done):
     first, calls = done["first"], done["calls"]
     trained_first = [k for k in first if k.startswith("train/")]
-    assert first["dataset"] and len(trained_first) == 2
-    # the killed third training was called again; the two finished ones were not
-    assert calls.count(calls[2]) == 2 and all(calls.count(k[6:]) == 1 for k in trained_first)
+    assert first["dataset"] and trained_first == ["train/pvnet_simple"]
+    # PVNet on simple trained epoch by epoch; on hard epoch 1 was trained and validated, the kill came
+    # in epoch 2; the resumed run did not train epoch 1 again (its figure was kept) but epoch 2
+    assert calls[:5] == [("pvnet_simple", 1), ("pvnet_simple", 2), ("pvnet_hard", 1), ("pvnet_hard", 2),
+                         ("pvnet_hard", 2)]
+    assert all(calls.count((n, e)) == 1 for n, e in calls if n != "pvnet_hard")
+    assert [f["step"] for f in done["first_val"]["pvnet_hard"]] == [1]
+    val_predictions = [e for e in done["log"] if e[:3] == ("predict", "val", "pvnet_hard")]
+    assert len(val_predictions) == len({(e[3], json.dumps(e[4], sort_keys=True)) for e in val_predictions})
     state = read_json(done["out"] / "reproduce.json")
     for k, v in first.items():
         assert state["jobs"][k] == v  # finished jobs kept as they were
@@ -100,12 +143,66 @@ def test_resume_after_a_kill_reuses_finished_work(done):
     assert read_json(done["out"] / "reproduce.json")["jobs"] == state["jobs"] and again.exists()
 
 
+def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done):
+    out, log = done["out"], done["log"]
+    state = read_json(out / "reproduce.json")
+    jobs = state["jobs"]
+    # the kept epoch is the validation-best one: epoch 2 on simple (the last), epoch 1 on hard
+    for name, best, last in (("pvnet_simple", 2, 2), ("pvnet_hard", 1, 2)):
+        j = jobs[f"train/{name}"]
+        figs = {f["epoch"]: f["add_s"] for f in j["validation"]}
+        assert sorted(figs) == [1, 2] and figs[1] != figs[2]
+        assert j["kept_epoch"] == best == max(figs, key=figs.get) and j["epochs"] == last
+        kept = out / "runs" / name / "kept"
+        assert j["kept"] == str(kept) and read_json(kept / "kept.json")["epoch"] == best
+        k = torch.load(kept / "last.pt", weights_only=True)
+        last_pt = torch.load(out / "runs" / name / "last.pt", weights_only=True)
+        assert k["epoch"] == best and last_pt["epoch"] == last
+        same = all(torch.equal(k["model"][w], last_pt["model"][w]) for w in k["model"])
+        assert same == (best == last)
+        info = read_json(out / "results" / f"{name}_info.json")
+        assert info["run"] == str(kept.resolve()) and info["part"] == "test"
+    # PVNet's candidate inlier_cos chosen on validation and used for the test part
+    for name, cos in (("pvnet_simple", 0.9), ("pvnet_hard", 0.99)):
+        assert jobs[f"choose/{name}"]["options"] == {"inlier_cos": cos}
+        assert [f["options"]["inlier_cos"] for f in jobs[f"choose/{name}"]["validation"]] == [0.99, 0.9]
+        assert read_json(out / "results" / f"{name}_info.json")["method_config"]["inlier_cos"] == cos
+    # HFF6DoF's two rows: bearing + PnP on simple, 3D voting + LSQ on hard; the claims use the choice
+    assert jobs["choose/formulation/simple"]["primary"] == "hff6dof_simple"
+    assert jobs["choose/formulation/hard"]["primary"] == "hff6dof-3d_hard"
+    t = json.loads((out / "tables" / "tables.json").read_text())
+    claim = [c for c in t["agreement"] if c["id"] == "hff6dof_hard_add_s"][0]
+    assert "3D voting + LSQ" in claim["ours"]
+    md = done["md"].read_text()
+    assert "**Chosen on validation**" in md and "| pvnet_hard | epoch | epoch 1 of 2 (step 1) |" in md
+    assert "| pvnet_simple | options | inlier_cos 0.9 |" in md
+    assert {r["result"] for r in t["choices"]} >= {"pvnet_simple", "pvnet_hard", "HFF6DoF · simple", "HFF6DoF · hard"}
+    # the test part is predicted and scored only by the predict/score jobs, after every choice; every
+    # call inside a training or a choice is on the validation part
+    done_at = {e[1]: i for i, e in enumerate(log) if e[0] == "done"}
+    last_choice = max(i for j, i in done_at.items() if j.startswith(("choose/", "train/")))
+    for i, e in enumerate(log):
+        if e[0] in ("predict", "score"):
+            job = next(log[k][1] for k in range(i, len(log)) if log[k][0] == "done")
+            if e[1] == "test":
+                assert job.startswith(("predict/", "score/")) and i > last_choice
+            else:
+                assert e[1] == "val" and job.startswith(("train/", "choose/"))
+    assert any(e[:2] == ("score", "val") for e in log) and any(e[:2] == ("score", "test") for e in log)
+
+
 def test_changed_config_is_refused(done):
     other = json.loads(json.dumps(TEST))
-    other["epochs"]["pvnet"] = 2
+    other["epochs"]["pvnet"] = 3
     other["train"]["batch_size"] = 2
+    other["candidates"]["pvnet"]["inlier_cos"] = [0.99]
     before = (done["out"] / "reproduce.json").read_bytes()
-    with pytest.raises(TdofError, match=r"another config \(changed: epochs.pvnet 1 -> 2; train.batch_size 4 -> 2"):
+    with pytest.raises(TdofError, match=r"another config \(changed: candidates.pvnet.inlier_cos \[0.99, 0.9\] -> "
+                                        r"\[0.99\]; epochs.pvnet 2 -> 3; train.batch_size 8 -> 2"):
+        reproduce(done["out"], config=other, progress=False)
+    other = json.loads(json.dumps(TEST))
+    other["select"] = {"epochs": "last"}
+    with pytest.raises(TdofError, match=r"changed: select.epochs 'best' -> 'last'"):
         reproduce(done["out"], config=other, progress=False)
     with pytest.raises(TdofError, match="preset"):
         reproduce(done["out"], preset="cpu", config=TEST, progress=False)
@@ -145,6 +242,17 @@ def test_config_errors_and_presets(tmp_path):
         (tmp_path / "x").mkdir()
         (tmp_path / "x" / "junk").write_text("1")
         reproduce(tmp_path / "x", config=TEST, progress=False)
+    for text, msg in (('[candidates.hff6dof]\nvoting = ["bearing", "3d"]\n', r"candidates.hff6dof.voting: not an option "
+                       r"chosen on validation \(for hff6dof: depth_mode, "),
+                      ('[candidates.hff6dof]\ndepth_mode = ["filled", "restored"]\n', "derived from the ground truth"),
+                      ('[candidates.pvnet]\ninlier_cos = []\n', "must be a non-empty list"),
+                      ('[candidates.ffb6d]\ndepth_mode = ["raw", "raw"]\n', "lists a value twice"),
+                      ('[candidates.ffb6d]\ndepth_mode = ["raw", "holes"]\n', r"candidates.ffb6d.depth_mode: "),
+                      ('[candidates.posecnn]\nx = [1]\n', "unknown candidates.posecnn"),
+                      ('[select]\nepochs = "first"\n', "select.epochs must be one of best, last")):
+        bad.write_text(text)
+        with pytest.raises(TdofError, match=msg):
+            make_config(None, bad)
     bad.write_text('[method_options.ffb6d]\nn_pts = 3\n')
     with pytest.raises(TdofError, match=r"method_options.ffb6d: unknown option 'n_pts'"):
         make_config(None, bad)

@@ -233,3 +233,29 @@ def test_options_from_a_toml_file(tmp_path):
     f.write_text("[train\n")
     with pytest.raises(TdofError, match="not valid TOML"):
         load_train_config(f, get_method("hff6dof"))
+
+
+def test_stop_epoch_ends_a_call_early_and_the_run_continues_as_one(dataset, tmp_path):
+    """train(stop_epoch=e) stops after epoch e with a checkpoint; calling again with e + 1 ends with
+    the very weights, steps and learning rates of one uninterrupted call (the schedule spans
+    ``epochs`` either way): how reproduce validates each epoch's checkpoint."""
+    import json
+
+    from tdof20.methods.train import parameters_digest, load_run
+
+    images = split_images(dataset, "simple", "train")[:8]
+    opts = {**TRAIN, "num_workers": 0, "method": "pvnet", "method_config": {"fcdim": 32, "raw_dim": 16}}
+    a, b = tmp_path / "a", tmp_path / "b"
+    train(dataset, "simple", a, epochs=2, images=images, stop_epoch=1, **opts)
+    h = json.loads((a / "history.json").read_text())
+    assert h["steps"] == 2 and h["steps_per_epoch"] == 2 and h["total_steps"] == 4 and len(h["epochs"]) == 1
+    train(dataset, "simple", a, epochs=2, images=images, stop_epoch=2, **opts)
+    train(dataset, "simple", a, epochs=2, images=images, stop_epoch=3, **opts)  # past the end: nothing to do
+    train(dataset, "simple", b, epochs=2, images=images, **opts)
+    ca = torch.load(a / "last.pt", map_location="cpu", weights_only=True)
+    cb = torch.load(b / "last.pt", map_location="cpu", weights_only=True)
+    assert ca["step"] == cb["step"] == 4 and ca["epoch"] == cb["epoch"] == 2
+    assert [r["lr"] for r in ca["history"]] == [r["lr"] for r in cb["history"]]
+    assert parameters_digest(load_run(a)[0]) == parameters_digest(load_run(b)[0])
+    with pytest.raises(TdofError, match="stop_epoch must be >= 1"):
+        train(dataset, "simple", a, epochs=2, images=images, stop_epoch=0, **opts)

@@ -52,7 +52,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import itertools
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,6 +69,17 @@ METHODS = ("pvnet", "densefusion", "ffb6d", "hff6dof")
 LABELS = {"pvnet": "PVNet", "densefusion": "DenseFusion", "ffb6d": "FFB6D", "hff6dof": "HFF6DoF (bearing + PnP)",
           "hff6dof-3d": "HFF6DoF (3D voting + LSQ)"}
 PROTOCOLS = ("simple", "hard")
+SELECT_EPOCHS = ("best", "last")
+#: the prediction-time options [candidates.<method>] may list, per method: options that change no
+#: weight (the input depth mode a trained network is fed, voting thresholds, sizes of the pose
+#: recovery). HFF6DoF's voting is not among them: its two pose recoveries are two rows of the
+#: tables, and which one stands for HFF6DoF in the agreement claims is itself chosen on validation.
+CHOICE_OPTIONS = {
+    "hff6dof": ("depth_mode", "min_pixels", "max_points", "n_hyp", "inlier_cos", "bearing_tol"),
+    "pvnet": ("min_pixels", "inlier_cos", "vote_max_pixels", "min_inlier_ratio", "n_hyp", "max_rounds"),
+    "densefusion": ("depth_mode", "refine_iterations", "min_points"),
+    "ffb6d": ("depth_mode", "bandwidth_mm", "min_points", "max_votes"),
+}
 STATE = "reproduce.json"
 FORMAT = "tdof20-reproduce"
 
@@ -158,6 +171,27 @@ class ProfileConfig:
 
 
 @dataclass
+class SelectConfig:
+    """[select]: what is chosen on the validation part (never on the test part).
+
+    epochs: "best" keeps, of each training, the checkpoint of the epoch that scores best on
+    validation; "last" keeps the last one (no validation of epochs). every: validate every N-th
+    epoch (and the last one). max_images: validate on at most this many validation images of a
+    protocol, evenly spaced over the part (0 = all). The score that decides is the mean ADD(S) over
+    objects, ties broken by the mean 2D projection accuracy, then by the earlier epoch / the
+    candidate listed first."""
+
+    epochs: str = "best"
+    every: int = 1
+    max_images: int = 0
+
+    def __post_init__(self) -> None:
+        if self.epochs not in SELECT_EPOCHS:
+            raise ConfigError(f"select.epochs must be one of {', '.join(SELECT_EPOCHS)}, got '{self.epochs}'")
+        check_ranges(self, "select", positive=("every",), non_negative=("max_images",))
+
+
+@dataclass
 class ReproduceConfig:
     """What ``tdof20 reproduce`` runs (a preset, a TOML over it). dataset: a dataset root to use
     instead of simulating one ("" = simulate [data])."""
@@ -172,8 +206,12 @@ class ReproduceConfig:
     epochs: EpochsConfig = field(default_factory=EpochsConfig)
     ablations: AblationConfig = field(default_factory=AblationConfig)
     profile: ProfileConfig = field(default_factory=ProfileConfig)
+    select: SelectConfig = field(default_factory=SelectConfig)
     #: [method_options.<method>]: options of that method's config (checked by it), e.g. ffb6d n_points
     method_options: dict = field(default_factory=dict)
+    #: [candidates.<method>]: option = [values, ...] of the prediction-time options chosen on
+    #: validation (:data:`CHOICE_OPTIONS`); the first value of each list is the default
+    candidates: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -191,6 +229,12 @@ class ReproduceConfig:
 
 ALL_SCENES = tuple([f"single/{i:02d}" for i in range(1, 21)] + [f"multi/{i:02d}" for i in range(20)])
 
+#: the prediction-time choices of the cpu, gpu and full presets (the first value is the default)
+CANDIDATES = {"hff6dof": {"depth_mode": ["filled", "raw"], "bearing_tol": [0.02, 0.04]},
+              "pvnet": {"inlier_cos": [0.99, 0.97]},
+              "densefusion": {"refine_iterations": [2, 0]},
+              "ffb6d": {"bandwidth_mm": [40.0, 20.0]}}
+
 #: the presets, as TOML-like data over the defaults
 PRESETS: dict[str, dict] = {
     "smoke": {"data": {"scenes": ["single/juice_cup_340", "single/handle_cup_280", "multi/08", "multi/01"],
@@ -206,19 +250,25 @@ PRESETS: dict[str, dict] = {
             "train": {"image_size": [96, 128], "batch_size": 4, "lr": 1e-3},
             "epochs": {"hff6dof": 8, "pvnet": 8, "densefusion": 4, "ffb6d": 4},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
-            "profile": {"height": 240, "width": 320, "repeats": 3}},
+            "profile": {"height": 240, "width": 320, "repeats": 3},
+            "select": {"epochs": "best", "every": 2, "max_images": 200},
+            "candidates": CANDIDATES},
     "gpu": {"data": {"scenes": list(ALL_SCENES), "steps": 100, "step_deg": 3.6, "n_arms": 4, "width": 640,
                      "height": 480},
             "train": {"image_size": [240, 320], "batch_size": 8, "lr": 1e-3, "num_workers": 4},
             "epochs": {"hff6dof": 30, "pvnet": 30, "densefusion": 15, "ffb6d": 15},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
-            "profile": {"height": 480, "width": 640, "repeats": 20}},
+            "profile": {"height": 480, "width": 640, "repeats": 20},
+            "select": {"epochs": "best", "every": 5, "max_images": 500},
+            "candidates": CANDIDATES},
     "full": {"data": {"scenes": list(ALL_SCENES), "steps": 400, "step_deg": 0.9, "n_arms": 4, "width": 640,
                       "height": 480},
              "train": {"image_size": [480, 640], "batch_size": 8, "lr": 1e-3, "num_workers": 8},
              "epochs": {"hff6dof": 100, "pvnet": 100, "densefusion": 50, "ffb6d": 50},
              "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
-             "profile": {"height": 480, "width": 640, "repeats": 50}},
+             "profile": {"height": 480, "width": 640, "repeats": 50},
+             "select": {"epochs": "best", "every": 10, "max_images": 1000},
+             "candidates": CANDIDATES},
 }
 
 
@@ -252,6 +302,7 @@ def make_config(preset: str | None = None, config: str | Path | dict | None = No
     if dataset is not None:
         merged["dataset"] = str(Path(dataset).resolve())
     options = merged.pop("method_options", {})
+    candidates = merged.pop("candidates", {})
     cfg = config_from_data(ReproduceConfig, merged, src)
     if not isinstance(options, dict) or any(not isinstance(v, dict) for v in options.values()):
         raise TdofError("method_options must hold one table per method ([method_options.ffb6d] ...)", src or None)
@@ -266,7 +317,43 @@ def make_config(preset: str | None = None, config: str | Path | dict | None = No
         except TdofError as e:
             raise TdofError(f"method_options.{m}: {e}", src or None) from None
     cfg.method_options = json.loads(json.dumps(options))
+    cfg.candidates = check_candidates(candidates, src)
     return cfg
+
+
+def check_candidates(candidates: Any, src: str = "") -> dict:
+    """[candidates.<method>] option = [values]: each option one of :data:`CHOICE_OPTIONS`, each list
+    non-empty without repeats, each value one the method's config accepts (restored depth, derived
+    from the ground truth, is no candidate). Returns the tables as plain JSON types."""
+    from tdof20.methods.registry import get_method
+
+    where = src or None
+    if not isinstance(candidates, dict) or any(not isinstance(v, dict) for v in candidates.values()):
+        raise TdofError("candidates must hold one table per method ([candidates.hff6dof] ...)", where)
+    bad = sorted(set(candidates) - set(METHODS))
+    if bad:
+        raise TdofError(f"unknown candidates.{bad[0]} (known: {', '.join(METHODS)})", where)
+    out: dict = {}
+    for m, table in candidates.items():
+        for opt, values in table.items():
+            key = f"candidates.{m}.{opt}"
+            if opt not in CHOICE_OPTIONS[m]:
+                raise TdofError(f"{key}: not an option chosen on validation (for {m}: "
+                                f"{', '.join(CHOICE_OPTIONS[m])})", where)
+            if not isinstance(values, list) or not values:
+                raise TdofError(f"{key} must be a non-empty list of values, got {values!r}", where)
+            if len({json.dumps(v) for v in values}) != len(values):
+                raise TdofError(f"{key} lists a value twice: {values}", where)
+            if opt == "depth_mode" and "restored" in values:
+                raise TdofError(f"{key}: 'restored' depth is derived from the ground truth (an upper bound, never "
+                                "a submission): it is no candidate", where)
+            for v in values:
+                try:
+                    get_method(m).config_from({opt: v}, "")
+                except TdofError as e:
+                    raise TdofError(f"{key}: {e}", where) from None
+            out.setdefault(m, {})[opt] = json.loads(json.dumps(values))
+    return out
 
 
 def config_data(cfg: ReproduceConfig) -> dict:
@@ -301,7 +388,10 @@ def changed_keys(old: dict, new: dict) -> list[str]:
 
 
 def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConfig, epochs: int,
-              show: bool, **options) -> Path:
+              show: bool, stop_epoch: int | None = None, **options) -> Path:
+    """Train (or continue) ``run`` on the train part minus the validation part of ``split``, for
+    ``epochs`` epochs in all; with ``stop_epoch`` the call ends after that epoch (the schedule still
+    spans ``epochs``)."""
     from tdof20.methods.train import train
 
     t = cfg.train
@@ -310,28 +400,46 @@ def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConf
         mcfg = {**(mcfg or {}), "vector_origin": options.pop("vector_origin")}
     return train(root, split, run, method=method, method_config=mcfg, image_size=tuple(t.image_size), batch_size=t.batch_size,
                  epochs=int(epochs), lr=t.lr, max_steps=t.max_steps or None, num_workers=t.num_workers, seed=t.seed,
-                 device=cfg.device, progress=show, **options)
+                 device=cfg.device, progress=show, part="train-val", stop_epoch=stop_epoch, **options)
 
 
 def predict_run(run: Path, root: Path, split: str, out_csv: Path, cfg: ReproduceConfig, show: bool,
-                **options) -> dict:
-    from tdof20.formats.io import read_json
-    from tdof20.methods.predict import info_path, predict
+                part: str = "test", images: list[tuple[int, int]] | None = None, **options) -> dict:
+    """Predict ``part`` ('test' or 'val'; ``images``: these validation images only) of ``split`` with
+    the run folder ``run`` into ``out_csv`` (+ ``_info.json``); ``options``: the method's prediction
+    options (its config's names). Returns the summary."""
+    from tdof20.benchmark.results import write_results_csv
+    from tdof20.formats.io import read_json, write_json
+    from tdof20.methods.predict import info_path, predict, predict_rows
 
     for p in (out_csv, info_path(out_csv)):  # a rerun of an interrupted prediction starts afresh
         if p.exists():
             p.unlink()
-    predict(run, root, split, out_csv, device=cfg.device, num_workers=cfg.train.num_workers, seed=cfg.train.seed,
-            progress=show, **options)
-    return read_json(info_path(out_csv))
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    kw = dict(device=cfg.device, num_workers=cfg.train.num_workers, seed=cfg.train.seed, progress=show,
+              method_options=dict(options) or None, part=part)
+    if images is None:
+        predict(run, root, split, out_csv, **kw)
+        return read_json(info_path(out_csv))
+    rows, info = predict_rows(run, root, split, images=images, **kw)
+    write_results_csv(out_csv, rows)
+    write_json(info_path(out_csv), info)
+    return info
 
 
-def score_run(results_csv: Path, root: Path, split: str) -> dict:
+def score_run(results_csv: Path, root: Path, split: str, part: str = "test", targets: Path | None = None) -> dict:
+    """The scorer's dict of a results CSV on ``split``'s test part, or (``part`` 'val') against the
+    validation targets file ``targets``; with the accuracy curves and the scorer's warnings."""
     from tdof20.benchmark.scoring import evaluate
     from tdof20.benchmark.tables import curves_from_evaluation
 
-    ev = evaluate(results_csv, root, split, metrics="add,proj")
-    return {**ev.summary(), "curves": curves_from_evaluation(ev), "warnings": list(ev.warnings)}
+    if part == "val":
+        if targets is None:
+            raise TdofError("scoring the validation part needs its targets file")
+        ev = evaluate(results_csv, root, None, targets=targets, metrics="add,proj")
+    else:
+        ev = evaluate(results_csv, root, split, metrics="add,proj")
+    return {**ev.summary(), "curves": curves_from_evaluation(ev), "warnings": list(ev.warnings), "part": part}
 
 
 def profile_methods(methods: tuple[str, ...], cfg: ReproduceConfig) -> list[dict]:
@@ -470,8 +578,271 @@ def _predictions(cfg: ReproduceConfig) -> list[dict]:
     return out
 
 
+def _grid(cfg: ReproduceConfig, p: dict) -> list[dict]:
+    """The candidate option sets of a main prediction ``p`` ([candidates.<method>], the product of
+    its lists in the order given; the first set is the default), without the options that do not
+    act on the row (HFF6DoF: bearing_tol only with bearing voting, inlier_cos only with 3D voting).
+    [{}] when nothing is listed."""
+    table = dict(cfg.candidates.get(p["method"], {}))
+    if p["method"] == "hff6dof":
+        table.pop("bearing_tol" if p["options"].get("voting") == "3d" else "inlier_cos", None)
+    keys = list(table)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(table[k] for k in keys))]
+
+
+def _source(cfg: ReproduceConfig, p: dict) -> dict:
+    """The main prediction whose chosen options ``p`` uses: itself, or for the ablations' runs
+    HFF6DoF's main run on hard (the ablations change only the fusion or the head)."""
+    if p["role"] == "main":
+        return p
+    return next(q for q in _predictions(cfg) if q["name"] == "hff6dof_hard")
+
+
+def _better(a: dict, b: dict | None) -> bool:
+    """Strictly better on validation: mean ADD(S), then mean 2D projection (ties keep ``b``)."""
+    if b is None:
+        return True
+    ka = (a.get("add_s") or 0.0, a.get("proj2d") or 0.0)
+    kb = (b.get("add_s") or 0.0, b.get("proj2d") or 0.0)
+    return ka > kb
+
+
+def _opts_key(options: dict) -> str:
+    return json.dumps(options, sort_keys=True)
+
+
+class Validation:
+    """Predictions and scores on the validation part, for the choices only (never the test part):
+    the images (at most select.max_images, evenly spaced), their targets file
+    (DIR/val/targets_<split>.json, written here: a given dataset is only read), and each figure
+    cached in reproduce.json ("validation": run -> [figures]) so that a resumed run predicts
+    nothing twice."""
+
+    def __init__(self, out: Path, root: Path, cfg: ReproduceConfig, state: State, show: bool):
+        self.out, self.root, self.cfg, self.state, self.show = out, root, cfg, state, show
+        self._images: dict[str, list] = {}
+
+    def images(self, split: str) -> list[tuple[int, int]]:
+        if split not in self._images:
+            from tdof20.benchmark.validation import part_images
+
+            ims = part_images(self.root, split, "val")
+            if not ims:
+                raise TdofError(f"the {split} split's validation part is empty (too few turntable steps per arm "
+                                "position for a validation arc): the choices on validation need one; give more "
+                                "data.steps, or select.epochs = \"last\", no [candidates] and ablations.voting_3d = "
+                                "false", self.root)
+            n = self.cfg.select.max_images
+            if n and len(ims) > n:
+                ims = [ims[(i * len(ims)) // n] for i in range(n)]
+            self._images[split] = ims
+        return self._images[split]
+
+    def targets(self, split: str) -> Path:
+        from tdof20.benchmark.validation import val_targets
+        from tdof20.formats.io import write_json
+
+        path = self.out / "val" / f"targets_{split}.json"
+        if not path.exists():
+            keep = set(self.images(split))
+            tg = [t for t in val_targets(self.root, split) if (t["scene_id"], t["im_id"]) in keep]
+            if not tg:
+                raise TdofError(f"the {split} split's validation images hold no targets", self.root)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_json(path, tg, indent=None)
+        return path
+
+    def figure(self, name: str, run_dir: Path, split: str, step: int, epoch: int, options: dict) -> dict:
+        """The validation figure of run ``name``'s checkpoint at ``step`` (in ``run_dir``) predicted
+        with ``options``: {"step", "epoch", "options", "add_s", "proj2d", "targets", "results"}."""
+        cache = self.state.data.setdefault("validation", {}).setdefault(name, [])
+        key = _opts_key(options)
+        for f in cache:
+            if f["step"] == step and _opts_key(f["options"]) == key:
+                return f
+        tag = f"step{step:06d}_" + hashlib.sha256(key.encode()).hexdigest()[:8]
+        csv = self.out / "val" / name / f"{tag}.csv"
+        predict_run(run_dir, self.root, split, csv, self.cfg, False, part="val", images=self.images(split),
+                    **options)
+        sc = score_run(csv, self.root, split, part="val", targets=self.targets(split))
+        f = {"step": int(step), "epoch": int(epoch), "options": options, "add_s": sc["mean"].get("add_s"),
+             "proj2d": sc["mean"].get("proj2d"), "targets": int(sc["mean"].get("n", 0)), "results": str(csv)}
+        cache.append(f)
+        self.state.save()
+        return f
+
+
+def _history(run: Path) -> dict:
+    from tdof20.formats.io import read_json
+
+    h = read_json(run / "history.json")
+    ep = h.get("epochs") or [{}]
+    return {"step": int(h.get("steps", 0)), "epoch": int(ep[-1].get("epoch", 0)),
+            "ended": int(h.get("steps", 0)) >= int(h.get("total_steps", h.get("steps", 0))),
+            "loss": ep[-1].get("loss")}
+
+
+KEPT = "kept"
+
+
+def _keep(run: Path, step: int) -> Path:
+    """Copy the run's current weights (at ``step``) into RUN/kept/ (config.json + last.pt with the
+    weights only): a run folder predict reads. Refused when the checkpoint is not at ``step``."""
+    import shutil
+
+    import torch
+
+    from tdof20.formats.io import read_json, write_json
+    from tdof20.methods.train import read_checkpoint
+
+    kept = run / KEPT
+    if (kept / "kept.json").exists() and read_json(kept / "kept.json").get("step") == step:
+        return kept
+    ck = read_checkpoint(run / "last.pt", needs=("model", "epoch", "step"))
+    if int(ck["step"]) != step:
+        raise TdofError(f"holds step {int(ck['step'])}, but the validation-best checkpoint is step {step}: delete the "
+                        "run folder to train it again", run / "last.pt")
+    kept.mkdir(exist_ok=True)
+    if (kept / "kept.json").exists():
+        (kept / "kept.json").unlink()
+    tmp = kept / ".last.pt.tmp"
+    torch.save({"model": ck["model"], "epoch": int(ck["epoch"]), "step": step}, tmp)
+    os.replace(tmp, kept / "last.pt")
+    shutil.copyfile(run / "config.json", kept / ".config.json.tmp")
+    os.replace(kept / ".config.json.tmp", kept / "config.json")
+    write_json(kept / "kept.json", {"step": step, "epoch": int(ck["epoch"])})
+    return kept
+
+
+def _validated_epochs(cfg: ReproduceConfig, epochs: int) -> list[int]:
+    if cfg.select.epochs != "best" or epochs < 2:
+        return [epochs]
+    every = cfg.select.every
+    return sorted(set(range(every, epochs + 1, every)) | {epochs})
+
+
+def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, default_options: dict,
+                    val: Validation, show: bool) -> dict:
+    """Train run ``r`` on train minus val, epoch by epoch where epochs are chosen: after each
+    validated epoch its checkpoint is predicted and scored on validation (with ``default_options``)
+    and the best one is copied to RUN/kept/. Resumable at any point."""
+    run = out / "runs" / r["name"]
+    marks = _validated_epochs(cfg, r["epochs"])
+    key = _opts_key(default_options)
+    cached = {f["epoch"]: f for f in val.state.data.get("validation", {}).get(r["name"], [])
+              if _opts_key(f["options"]) == key}
+    figures, best = [], None
+    for n, e in enumerate(marks):
+        f, new = cached.get(e), False
+        if f is None:
+            train_run(root, r["split"], run, r["method"], cfg, r["epochs"], show,
+                      stop_epoch=None if len(marks) == 1 else e, **r["options"])
+            h = _history(run)
+            if len(marks) == 1 or (n == 0 and h["ended"]):
+                break  # one checkpoint: nothing to choose
+            if figures and figures[-1]["step"] == h["step"]:
+                break  # the run ended (max_steps) before this epoch: the same checkpoint
+            f, new = val.figure(r["name"], run, r["split"], h["step"], h["epoch"], default_options), True
+        figures.append(f)
+        if _better(f, best):
+            best = f
+            if new:  # copied before the training goes on (a resumed run replays the figures cached)
+                _keep(run, f["step"])
+    if best is not None:
+        _keep(run, best["step"])  # a no-op unless a kill came between a figure and its copy
+    h = _history(run)
+    kept = run if best is None else run / KEPT
+    return {"run": str(run), "kept": str(kept), "kept_step": h["step"] if best is None else best["step"],
+            "kept_epoch": h["epoch"] if best is None else best["epoch"], "epochs": h["epoch"],
+            "steps": h["step"], "last_loss": h["loss"],
+            "validation": [{k: f[k] for k in ("epoch", "step", "add_s", "proj2d")} for f in figures]}
+
+
+# --------------------------------------------------------------------------------------------
+# what a config costs: counted (plan) and multiplied out from measured unit times (estimate)
+
+
+def _part_counts(cfg: ReproduceConfig) -> dict:
+    """{split: {"train-val", "val", "test"}} image counts of the config's data, from the split rules
+    (simulated scenes) or the given dataset, without building anything."""
+    from tdof20.benchmark.splits import VAL_PART, part_of
+    from tdof20.sim.scenes import normalize_scene_id, scene_number
+
+    out = {p: {"train-val": 0, "val": 0, "test": 0} for p in cfg.protocols}
+    if cfg.dataset:
+        from tdof20.benchmark.validation import part_images
+
+        for p in cfg.protocols:
+            for part in out[p]:
+                out[p][part] = len(part_images(cfg.dataset, p, part))
+        return out
+    d = cfg.data
+    for s in d.scenes:
+        sid = scene_number(normalize_scene_id(s))
+        for im in range(d.n_arms * d.steps):
+            for p in cfg.protocols:
+                part = part_of(p, sid, im, d.steps, d.n_arms, with_val=True)
+                if part is not None:
+                    out[p][{"train": "train-val", VAL_PART: "val"}.get(part, part)] += 1
+    return out
+
+
+def plan(cfg: ReproduceConfig) -> dict:
+    """What ``cfg`` asks for, counted without running anything: {"frames" (simulated RGB-D pairs,
+    both phases), "parts" (:func:`_part_counts`), "runs": [{"name", "method", "split", "images",
+    "steps", "epochs", "val_predictions", "val_images", "test_images"}]}. Validation predictions are
+    an upper bound (figures shared between the choices are counted once each)."""
+    parts = _part_counts(cfg)
+    preds = {p["run"]: p for p in _predictions(cfg)}
+    runs = []
+    for r in _runs(cfg):
+        n = parts[r["split"]]["train-val"]
+        bs = min(cfg.train.batch_size, max(1, n))
+        spe = max(1, n // bs)
+        steps = r["epochs"] * spe
+        if cfg.train.max_steps:
+            steps = min(steps, cfg.train.max_steps)
+        p = preds[r["name"]]
+        marks = _validated_epochs(cfg, r["epochs"])
+        n_val = (len(marks) if len(marks) > 1 and steps > spe else 0)
+        grid = _grid(cfg, p) if p["role"] == "main" else [{}]
+        n_val += len(grid) if len(grid) > 1 else 0
+        if p["method"] == "hff6dof" and p["role"] == "main" and cfg.ablations.voting_3d:
+            n_val += 1  # the formulation's figure (usually shared with the choices above)
+        vi = parts[r["split"]]["val"]
+        runs.append({"name": r["name"], "method": r["method"], "split": r["split"], "images": n, "steps": steps,
+                     "epochs": r["epochs"], "val_predictions": n_val,
+                     "val_images": min(vi, cfg.select.max_images) if cfg.select.max_images else vi,
+                     "test_images": parts[r["split"]]["test"]})
+    d = cfg.data
+    frames = 0 if cfg.dataset else 2 * len(d.scenes) * d.n_arms * d.steps
+    return {"frames": frames, "parts": parts, "runs": runs}
+
+
+def estimate(cfg: ReproduceConfig, step_s: dict, image_s: dict, frame_s: float = 0.0,
+             profile_s: float = 0.0) -> dict:
+    """Multiply :func:`plan` out: ``step_s`` {method: seconds per optimiser step at the config's
+    image size and batch}, ``image_s`` {method: seconds per predicted image (input + network + pose
+    recovery)}, ``frame_s`` seconds per simulated frame (capture + labels + dataset build),
+    ``profile_s`` seconds for Table 3. Returns {"total_s", "dataset_s", "train_s", "val_s", "test_s",
+    "profile_s", "per_run": [...], "plan"}."""
+    pl = plan(cfg)
+    per_run, tr, va, te = [], 0.0, 0.0, 0.0
+    for r in pl["runs"]:
+        t = r["steps"] * step_s[r["method"]]
+        v = r["val_predictions"] * r["val_images"] * image_s[r["method"]]
+        x = r["test_images"] * image_s[r["method"]]
+        tr, va, te = tr + t, va + v, te + x
+        per_run.append({**r, "train_s": round(t, 1), "val_s": round(v, 1), "test_s": round(x, 1)})
+    ds = pl["frames"] * frame_s
+    return {"total_s": round(ds + tr + va + te + profile_s, 1), "dataset_s": round(ds, 1), "train_s": round(tr, 1),
+            "val_s": round(va, 1), "test_s": round(te, 1), "profile_s": round(profile_s, 1), "per_run": per_run,
+            "plan": pl}
+
+
 def _entries(out: Path, cfg: ReproduceConfig, state: State):
-    """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off, objects)."""
+    """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off); the HFF6DoF
+    row chosen on validation to stand for HFF6DoF in the agreement claims carries extra["primary"]."""
     from tdof20.benchmark.tables import Entry
     from tdof20.formats.io import read_json
 
@@ -481,8 +852,10 @@ def _entries(out: Path, cfg: ReproduceConfig, state: State):
         if not f.exists():
             continue
         s = read_json(f)
+        form = f"choose/formulation/{p['split']}"
+        primary = state.done(form) and state.get(form).get("primary") == p["name"]
         e = Entry(p["label"], p["method"], p["split"], s, oracle_masks=bool(s.get("oracle_masks")),
-                  note=s.get("note", ""))
+                  note=s.get("note", ""), extra={"primary": True} if primary else {})
         if p["role"] == "main":
             entries.append(e)
             if p["method"] == "hff6dof" and p["split"] == "hard" and p["name"] == "hff6dof_hard":
@@ -504,6 +877,48 @@ def _objects(root: Path) -> dict:
     return models_info_objects(ds.models_info, {int(o): ds.object_name(int(o)) for o in ds.models_info})
 
 
+def _pcts(f: dict) -> str:
+    a, b = f.get("add_s"), f.get("proj2d")
+    return f"{'—' if a is None else f'{100 * a:.1f}'} / {'—' if b is None else f'{100 * b:.1f}'} %"
+
+
+def _opts_text(options: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in options.items()) or "defaults"
+
+
+def choices(cfg: ReproduceConfig, state: State) -> list[dict]:
+    """What was chosen on validation, per result (and the HFF6DoF formulation per protocol), with
+    the validation figures behind each choice: [{"result", "choice", "chosen", "validation"}]."""
+    rows = []
+    for p in _predictions(cfg):
+        t = f"train/{p['run']}"
+        if state.done(t):
+            j = state.get(t)
+            val = j.get("validation") or []
+            if val:
+                rows.append({"result": p["name"], "choice": "epoch",
+                             "chosen": f"epoch {j['kept_epoch']} of {j['epochs']} (step {j['kept_step']})",
+                             "validation": "; ".join(f"epoch {f['epoch']}: {_pcts(f)}" for f in val)})
+        c = f"choose/{_source(cfg, p)['name']}"
+        if state.done(c) and state.get(c).get("validation"):
+            j = state.get(c)
+            fixed = set(p["options"])
+            rows.append({"result": p["name"], "choice": "options" if p["role"] == "main" else
+                         f"options (those of {_source(cfg, p)['name']})",
+                         "chosen": _opts_text({k: v for k, v in j["options"].items() if k not in fixed}),
+                         "validation": "; ".join(_opts_text({k: v for k, v in f["options"].items() if k not in fixed})
+                                                 + f": {_pcts(f)}" for f in j["validation"])})
+    for split in cfg.protocols:
+        c = f"choose/formulation/{split}"
+        if state.done(c):
+            j = state.get(c)
+            rows.append({"result": f"HFF6DoF · {split}", "choice": "pose recovery standing for HFF6DoF "
+                         "(agreement claims)", "chosen": LABELS[j["primary"].split("_")[0]],
+                         "validation": "; ".join(f"{LABELS[n.split('_')[0]]}: {_pcts(f)}"
+                                                 for n, f in j["validation"].items())})
+    return rows
+
+
 def _header(cfg: ReproduceConfig, root: Path, state: State) -> list[str]:
     d = cfg.data
     src = (f"the given dataset {cfg.dataset}" if cfg.dataset else
@@ -511,10 +926,17 @@ def _header(cfg: ReproduceConfig, root: Path, state: State) -> list[str]:
            f"of {d.step_deg:g} deg at {d.width}x{d.height}, oracle labels")
     secs = sum(j.get("seconds", 0.0) for j in state.data["jobs"].values())
     ep = ", ".join(f"{m} {getattr(cfg.epochs, m)}" for m in cfg.methods)
+    sel = cfg.select
     return [f"# tdof20 reproduce — preset {cfg.preset}", "",
-            f"Dataset: {src} ({root}). Training: {cfg.train.image_size[0]}x{cfg.train.image_size[1]}, batch "
+            f"Dataset: {src} ({root}). Training: on each protocol's train part minus its validation part, "
+            f"{cfg.train.image_size[0]}x{cfg.train.image_size[1]}, batch "
             f"{cfg.train.batch_size}, epochs {ep}" + (f", at most {cfg.train.max_steps} optimiser step(s) per run"
                                                      if cfg.train.max_steps else "") + f"; device {cfg.device}.",
+            f"Choices on the validation part only (the test part is predicted once, with what was chosen): "
+            f"epochs {'the validation-best' if sel.epochs == 'best' else 'the last'}"
+            + (f" (every {sel.every} epochs)" if sel.epochs == "best" and sel.every > 1 else "")
+            + f"; candidates {json.dumps(cfg.candidates) if cfg.candidates else 'none'}"
+            + (f"; at most {sel.max_images} validation images per protocol" if sel.max_images else "") + ".",
             f"Work so far: {secs:.0f} s over {len(state.data['jobs'])} jobs (DIR/reproduce.json)."]
 
 
@@ -540,6 +962,9 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
             normalize_scene_id(s)  # unknown scene names stop here
     state = State(out, cfg)
     root = Path(cfg.dataset) if cfg.dataset else out / "dataset"
+    val = Validation(out, root, cfg, state, progress)
+    preds = _predictions(cfg)
+    by_run = {p["run"]: p for p in preds}
     jobs: list[Job] = []
 
     def dataset_job() -> dict:
@@ -548,28 +973,71 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
         _sim_dataset(out, cfg, progress)
         return {"root": str(root), "given": False}
 
+    def kept(p: dict) -> dict:
+        return state.get(f"train/{p['run']}")
+
+    def options_of(p: dict) -> dict:
+        """The options the test prediction of ``p`` uses: the row's own, and those chosen on validation."""
+        src = _source(cfg, p)
+        c = f"choose/{src['name']}"
+        chosen = state.get(c)["options"] if state.done(c) else _grid(cfg, src)[0]
+        return {**{k: v for k, v in chosen.items() if k not in p["options"]}, **p["options"]}
+
+    def val_figure(p: dict) -> dict:
+        """p's kept checkpoint with its chosen options, on validation (cached)."""
+        k = kept(p)
+        return val.figure(p["run"], Path(k["kept"]), p["split"], k["kept_step"], k["kept_epoch"], options_of(p))
+
     jobs.append(Job("dataset", "dataset", dataset_job))
     for r in _runs(cfg):
         def train_job(r=r) -> dict:
-            run = out / "runs" / r["name"]
-            train_run(root, r["split"], run, r["method"], cfg, r["epochs"], progress, **r["options"])
-            hist = run / "history.json"
-            last = (read_json(hist).get("epochs") or [{}])[-1] if hist.exists() else {}
-            return {"run": str(run), "last_loss": last.get("loss")}
+            p = by_run[r["name"]]
+            src = _source(cfg, p)
+            default = {**_grid(cfg, src)[0], **p["options"]}
+            return _train_and_keep(out, root, cfg, r, default, val, progress)
         jobs.append(Job(f"train/{r['name']}", "train", train_job))
-    for p in _predictions(cfg):
+    for p in preds:
+        grid = _grid(cfg, p) if p["role"] == "main" else [{}]
+        if len(grid) > 1:
+            def choose_job(p=p, grid=grid) -> dict:
+                k = kept(p)
+                figs, best = [], None
+                for combo in grid:
+                    f = val.figure(p["run"], Path(k["kept"]), p["split"], k["kept_step"], k["kept_epoch"],
+                                   {**combo, **p["options"]})
+                    figs.append({"options": f["options"], "add_s": f["add_s"], "proj2d": f["proj2d"]})
+                    if _better(f, best):
+                        best, chosen = f, combo
+                return {"options": chosen, "validation": figs, "epoch": k["kept_epoch"]}
+            jobs.append(Job(f"choose/{p['name']}", "choose", choose_job))
+    for split in cfg.protocols:
+        pair = [p for p in preds if p["name"] in (f"hff6dof_{split}", f"hff6dof-3d_{split}")]
+        if len(pair) == 2:
+            def formulation_job(pair=pair) -> dict:
+                figs = {p["name"]: val_figure(p) for p in pair}
+                best = None
+                for name, f in figs.items():  # the default (bearing + PnP) first: it wins ties
+                    if _better(f, best):
+                        best, primary = f, name
+                return {"primary": primary,
+                        "validation": {n: {"add_s": f["add_s"], "proj2d": f["proj2d"]} for n, f in figs.items()}}
+            jobs.append(Job(f"choose/formulation/{split}", "choose", formulation_job))
+    for p in preds:
         def predict_job(p=p) -> dict:
             csv = out / "results" / f"{p['name']}.csv"
             csv.parent.mkdir(parents=True, exist_ok=True)
-            info = predict_run(out / "runs" / p["run"], root, p["split"], csv, cfg, progress, **p["options"])
-            return {"results": str(csv), "masks": info.get("masks"), "predictions": info.get("predictions")}
+            opts = options_of(p)
+            info = predict_run(Path(kept(p)["kept"]), root, p["split"], csv, cfg, progress, part="test", **opts)
+            return {"results": str(csv), "masks": info.get("masks"), "predictions": info.get("predictions"),
+                    "run": kept(p)["kept"], "epoch": kept(p)["kept_epoch"], "options": opts}
 
         def score_job(p=p) -> dict:
             csv = out / "results" / f"{p['name']}.csv"
             masks = state.get(f"predict/{p['name']}").get("masks")
-            s = score_run(csv, root, p["split"])
+            s = score_run(csv, root, p["split"], part="test")
             s["oracle_masks"] = masks == "gt"
             s["method"], s["label"], s["split"] = p["method"], p["label"], p["split"]
+            s["chosen"] = {"epoch": kept(p)["kept_epoch"], "options": state.get(f"predict/{p['name']}")["options"]}
             if p["options"].get("voting") == "3d":
                 s["note"] = ("the paper's pose recovery: 3D voting on the back-projected input depth + least squares, "
                              "trained with vectors from those observed points")
@@ -603,12 +1071,13 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     entries, fusion, seg_on, seg_off = _entries(out, cfg, state)
     profiles = read_json(out / "profile.json") if (out / "profile.json").exists() else []
     paths = write_tables(out / "tables", entries, profiles, fusion or None, seg_on, seg_off, _objects(root),
-                         header=_header(cfg, root, state))
+                         header=_header(cfg, root, state), choices=choices(cfg, state))
     if progress:
         console.print(f"tables: {paths['tables.md']}")
     return paths["tables.md"]
 
 
-__all__ = ["AblationConfig", "DataConfig", "EpochsConfig", "LABELS", "METHODS", "PRESETS", "ProfileConfig",
-           "ReproduceConfig", "State", "changed_keys", "config_data", "config_digest", "make_config",
+__all__ = ["AblationConfig", "CANDIDATES", "CHOICE_OPTIONS", "DataConfig", "EpochsConfig", "LABELS", "METHODS",
+           "PRESETS", "ProfileConfig", "ReproduceConfig", "SelectConfig", "State", "Validation", "changed_keys",
+           "check_candidates", "choices", "estimate", "plan", "config_data", "config_digest", "make_config",
            "predict_run", "profile_methods", "reproduce", "score_run", "train_run", "validation_images"]

@@ -445,12 +445,13 @@ def _primary(entries: Sequence[Entry], method: str, split: str) -> Entry | None:
     """The first result of ``method`` on ``split`` without oracle masks (then with them)."""
     cands = [e for e in entries if e.method == method and e.split == split]
     clean = [e for e in cands if not e.oracle_masks]
-    return (clean or cands or [None])[0]
+    chosen = [e for e in clean if e.extra.get("primary")]  # the row chosen on validation to stand for the method
+    return (chosen or clean or cands or [None])[0]
 
 
 def _ranking(entries: Sequence[Entry], key: str, first: str, second: str, margin: float, cid: str) -> dict:
     per = {}
-    for e in entries:
+    for e in sorted(entries, key=lambda e: not e.extra.get("primary")):  # a row chosen on validation first
         if e.split == "hard" and not e.oracle_masks and e.method not in per and e.value(key) is not None:
             per[e.method] = e
     mine = per.get(first)
@@ -664,13 +665,32 @@ def plot_accuracy(entries: Sequence[Entry], path: str | Path,
 # everything
 
 
+def choices_markdown(rows: Sequence[Mapping]) -> str:
+    """The choices made on validation ({"result", "choice", "chosen", "validation"} each) as a
+    Markdown section."""
+    out = ["**Chosen on validation** (the validation part of each protocol's train part; mean ADD(S) / "
+           "2D projection accuracy over objects; the test part played no part in any choice)", ""]
+    if not rows:
+        return "\n".join(out + ["Nothing to choose: one checkpoint per training and no candidate options."])
+    out += ["| result | choice | chosen on validation | validation ADD(S) / 2D projection |", "| --- | --- | --- | --- |"]
+    out += [f"| {r['result']} | {r['choice']} | {r['chosen']} | {r['validation']} |" for r in rows]
+    return "\n".join(out)
+
+
+def choices_csv(rows: Sequence[Mapping]) -> str:
+    return _csv([["result", "choice", "chosen", "validation"]]
+                 + [[r["result"], r["choice"], r["chosen"], r["validation"]] for r in rows])
+
+
 def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequence[Mapping] = (),
                  fusion: Mapping[int, Entry] | None = None, seg_on: Entry | None = None,
                  seg_off: Entry | None = None, objects: Mapping[int, tuple[str, bool]] | None = None,
-                 header: Sequence[str] = (), plots: bool = True) -> dict[str, Path]:
+                 header: Sequence[str] = (), plots: bool = True,
+                 choices: Sequence[Mapping] | None = None) -> dict[str, Path]:
     """Render every table into ``out_dir``: tables.md, tables.json, table1_add_s.csv,
     table2_proj2d.csv, table3_efficiency.csv, ablation_fusion.csv, ablation_segmentation.csv,
-    agreement.csv and plots/accuracy_<label>.png per method (atomic writes). Tables without any
+    agreement.csv, choices.csv (with ``choices``: what was chosen on validation, rendered after
+    the header) and plots/accuracy_<label>.png per method (atomic writes). Tables without any
     input are left out (a note says so). Returns {name: path}."""
     from tdof20.formats.io import atomic_write_bytes, write_json
 
@@ -683,6 +703,11 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
     def put(name: str, text: str) -> None:
         atomic_write_bytes(out / name, text.encode())
         paths[name] = out / name
+
+    if choices is not None:
+        data["choices"] = [dict(r) for r in choices]
+        md += [choices_markdown(choices), ""]
+        put("choices.csv", choices_csv(choices))
 
     if entries:
         for key, name in (("add_s", "table1_add_s.csv"), ("proj2d", "table2_proj2d.csv")):
@@ -732,7 +757,8 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
 
 
 __all__ = ["CLAIMS", "Entry", "MISSING", "ORACLE", "PAPER", "TOLERANCE", "ablation_csv", "ablation_markdown",
-           "agreement", "agreement_csv", "agreement_markdown", "catalog_objects", "columns", "curves_from_evaluation",
+           "agreement", "agreement_csv", "agreement_markdown", "catalog_objects", "choices_csv", "choices_markdown",
+           "columns", "curves_from_evaluation",
            "efficiency_csv", "efficiency_markdown", "efficiency_table", "fusion_table", "models_info_objects",
            "plot_accuracy", "protocol_csv", "protocol_markdown", "protocol_table", "segmentation_table",
            "write_tables"]

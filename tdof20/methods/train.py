@@ -625,7 +625,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
           device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
           seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
           save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None,
-          part: str = "train", images: list[tuple[int, int]] | None = None) -> Path:
+          part: str = "train", images: list[tuple[int, int]] | None = None,
+          stop_epoch: int | None = None) -> Path:
     """Train (or resume training) ``method`` on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
@@ -648,6 +649,10 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     validation part, :mod:`tdof20.benchmark.validation`, so that choices can be made on
     validation); images: an explicit list of (scene_id, im_id) of the train part instead. The run
     records its part ("part", and "images_sha256" of the list) and refuses to resume on another.
+    stop_epoch: end this call once this many epochs are done in all (or at the run's end, if that
+    comes first), with a checkpoint; the learning-rate schedule still spans ``epochs`` (or
+    ``max_steps``), so calling again with a larger ``stop_epoch`` continues the very same run: how a
+    caller validates each epoch's checkpoint (``tdof20 reproduce`` keeps the validation-best one).
 
     Any dataset layout (tdof20's, BOP's: ``split`` is then a split folder such as 'train_pbr') and
     any object ids: classes 1..n map to the dataset's objects (the run's meta; a tdof20 dataset
@@ -676,6 +681,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
         if batch_size < 1 or epochs < 1 or lr <= 0:
             raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
+        if stop_epoch is not None and int(stop_epoch) < 1:
+            raise TdofError(f"stop_epoch must be >= 1, got {stop_epoch}")
         if fuse_stages is not None and not 1 <= int(fuse_stages) <= 5:
             raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
         cfg = make_method_config(m, method_config, depth_mode=depth_mode, fuse_stages=fuse_stages,
@@ -838,6 +845,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if max_steps is not None:
             total = min(total, int(max_steps))
         warmup = min(200, total // 20)
+        # where this call ends: the run's end, or the end of epoch stop_epoch (the schedule spans total)
+        limit = total if stop_epoch is None else min(total, int(stop_epoch) * steps_per_epoch)
         sampler = torch.utils.data.DistributedSampler(tdata, num_replicas=world, rank=rank, shuffle=True,
                                                       seed=seed, drop_last=True)
         if main and show:
@@ -856,7 +865,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                           "scaler": scaler.state_dict() if scaler.is_enabled() else None,
                           "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
                           "config": config}, ckpt_path)
-            write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step,
+            write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step, "total_steps": total,
+                                                   "steps_per_epoch": steps_per_epoch,
                                                    **({"processes": processes} if processes else {})})
             if history:
                 plot_losses(history, out_run / "loss.png", f"{m.name} training")
@@ -864,8 +874,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         global_bs = bs * world
         start_step = step
         with progress_bar(show, unit="img") as bar:
-            task = bar.add_task("training", total=total * global_bs, completed=min(step, total) * global_bs)
-            while step < total:
+            task = bar.add_task("training", total=limit * global_bs, completed=min(step, limit) * global_bs)
+            while step < limit:
                 sampler.set_epoch(epoch)
                 skip = step - epoch * steps_per_epoch  # steps of this epoch done before a resume
                 idx = list(sampler)[max(0, skip) * bs: steps_per_epoch * bs]
@@ -877,7 +887,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                 t0, n_img, sums, counts = time.perf_counter(), 0, {}, {}
                 n_steps = 0
                 for batch in loader:
-                    if step >= total:
+                    if step >= limit:
                         break
                     batch = to_device(batch, dev)
                     lr_now = lr * lr_factor(step, total, lr_schedule, warmup)
@@ -914,7 +924,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                                            "images_per_s": round(n_img / dt, 2) if dt > 0 else None})
                     if step >= (epoch + 1) * steps_per_epoch:
                         epoch += 1
-                if step < total and time.perf_counter() - last_save[0] >= save_every_s:
+                if step < limit and time.perf_counter() - last_save[0] >= save_every_s:
                     save()
                 if show and epochs_log:
                     e = epochs_log[-1]
