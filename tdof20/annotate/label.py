@@ -17,8 +17,9 @@ Per frame ``(arm, step)`` of the transparent phase, ``im_id = arm * steps + step
 
 The frames run in chunks on worker processes (or a Ray cluster, see
 :mod:`tdof20.annotate.executors`); each worker opens the session and builds its ray caster once.
-The three JSON files are rewritten atomically after every chunk (merged with the entries already
-there), so an interrupted run loses at most the chunks in flight, and a rerun redoes only the
+The three JSON files are rewritten atomically as the chunks come back (merged with the entries
+already there; at most every 2 s, and at the end — also of an interrupted run), so a killed run
+loses at most the chunks of its last 2 s and those in flight, and a rerun redoes only the
 frames whose files or JSON entries are missing or whose poses changed. A frame with a missing or
 corrupt image is skipped and reported, never labelled; a frame the caller skips (flagged by
 registration) gets no labels, and labels left from an earlier run for it are removed.
@@ -59,6 +60,9 @@ IMAGE_DIRS = ("rgb", "depth", "depth_opaque", "depth_restored")
 MASK_DIRS = ("mask", "mask_visib")
 _POSE_TOL_R = 1e-7     # a stored pose this close to the requested one counts as the same label
 _POSE_TOL_T = 1e-4     # mm
+_FLUSH_S = 2.0         # the three JSON files are rewritten (and synced) at most this often while the
+                       # chunks come in, and once at the end: after every chunk, the full scene's
+                       # 100 chunks rewrote ~180 MB with 300 fsyncs
 
 
 @dataclass(frozen=True)
@@ -69,7 +73,7 @@ class LabelConfig:
     compare_every: also run the other method on every N-th frame (``im_id % N == 0``) and report
         the IoU of the two visible masks (0 = never).
     png_compression: ISA-L level 0-3 of the masks and depth_restored (copied files keep theirs).
-    chunk: frames per task sent to a worker (the JSON files are rewritten after each).
+    chunk: frames per task sent to a worker (the JSON files are rewritten at most every 2 s as they come back).
     workers: worker processes (None = os.cpu_count(); 1 = in this process).
     executor: "local" (worker processes) or "ray"; ray_address: the cluster (None = a new local
         Ray instance).
@@ -647,6 +651,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     times: dict[str, float] = {}
     t_run, cpu_run = time.perf_counter(), time.process_time()
     t_first, n_first = None, 0
+    t_flush = time.perf_counter()
     gate_agree: list[float] = []
     gate_failed = gate_unjudged = 0
     try:
@@ -675,7 +680,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                     comparisons.append({"im_id": r["im_id"], **c})
                 for k, v in r["times"].items():
                     times[k] = times.get(k, 0.0) + v
-            js.flush()
+            if time.perf_counter() - t_flush >= _FLUSH_S:
+                js.flush()
+                t_flush = time.perf_counter()
             if t_first is None:
                 t_first, n_first = time.perf_counter(), len(labelled)
     finally:
