@@ -80,3 +80,20 @@ def test_mask_rows_iou_matches_the_whole_image(tmp_path):
             u = np.count_nonzero((a > 0) | (b > 0))
             want = 1.0 if u == 0 else np.count_nonzero((a > 0) & (b > 0)) / u
             assert mask_rows_iou(mask_rows(pa), mask_rows(pb)) == want
+
+
+def test_mask_rows_holds_every_pixel_and_nothing_else(tmp_path):
+    """The box mask_rows decodes holds each non-zero pixel, also of masks touching a border."""
+    rng = np.random.default_rng(8)
+    for k in range(40):
+        m = np.zeros((30, 50), np.uint8)
+        for _ in range(int(rng.integers(0, 4))):
+            y, x = rng.integers(-5, 30), rng.integers(-5, 50)
+            m[max(y, 0):y + rng.integers(1, 15), max(x, 0):x + rng.integers(1, 25)] = 255
+        p = tmp_path / f"{k}.png"
+        p.write_bytes(encode_png(m))
+        v0, u0, block, shape = mask_rows(p)
+        assert shape == m.shape
+        whole = np.zeros(m.shape, bool)
+        whole[v0:v0 + block.shape[0], u0:u0 + block.shape[1]] = block
+        assert np.array_equal(whole, m > 0)

@@ -86,33 +86,44 @@ def read_png_fast(path: str | Path, kind: str = "any") -> np.ndarray:
     return decode_png_fast(read_bytes(path), Path(path), kind)
 
 
-def mask_rows(path: str | Path) -> tuple[int, np.ndarray, tuple[int, int]]:
-    """A mask PNG (8-bit grey) as (first row, its rows from there to the last row holding a
-    non-zero pixel as (n, W) bool, (H, W)): what an IoU needs, without the all-zero rows around
-    an object. Any PNG the fast path does not take is read whole (:func:`tdof20.formats.read_png`,
-    its errors)."""
+def mask_rows(path: str | Path) -> tuple[int, int, np.ndarray, tuple[int, int]]:
+    """A mask PNG (8-bit grey) as (v0, u0, block, (H, W)): ``block`` (n, m) bool holds every
+    non-zero pixel, its top-left pixel is (v0, u0) — what an IoU needs, without decoding the
+    empty rows and columns around an object. Any PNG the fast path does not take is read whole
+    (:func:`tdof20.formats.read_png`, its errors)."""
     from tdof20.formats import read_bytes
 
     data = read_bytes(path)
     got = _filtered_rows(data, "mask")
     if got is None:
         m = decode_png(data, Path(path), "mask") > 0
-        return 0, m, m.shape
+        return 0, 0, m, m.shape
     rows, w, _, _ = got
+    h = rows.shape[0]
     body = rows[:, 1:]
-    # a row of a Sub-filtered image is all zero exactly when the row is all zero
+    # Sub filter: a row is all zero exactly when its filtered bytes are, and left of a row's first
+    # non-zero filtered byte every pixel is 0; right of its last one every pixel repeats it
     nz = np.flatnonzero(body.any(axis=1))
     if not len(nz):
-        return 0, np.zeros((0, w), bool), (rows.shape[0], w)
+        return 0, 0, np.zeros((0, 0), bool), (h, w)
     r0, r1 = int(nz[0]), int(nz[-1]) + 1
-    return r0, np.cumsum(body[r0:r1], axis=1, dtype=np.uint8) > 0, (rows.shape[0], w)
+    cols = np.flatnonzero(body[r0:r1].any(axis=0))
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    block = np.cumsum(body[r0:r1, c0:c1], axis=1, dtype=np.uint8)
+    if c1 < w and block[:, -1].any():     # a row still on at its last change: on to the border
+        block = np.cumsum(body[r0:r1, c0:], axis=1, dtype=np.uint8)
+    return r0, c0, block > 0, (h, w)
 
 
-def mask_rows_iou(a: tuple[int, np.ndarray, tuple[int, int]], b: tuple[int, np.ndarray, tuple[int, int]]) -> float:
-    """IoU of two :func:`mask_rows` (1.0 when both are empty)."""
-    (ra, ma, _), (rb, mb, _) = a, b
+def mask_rows_iou(a: tuple[int, int, np.ndarray, tuple[int, int]],
+                  b: tuple[int, int, np.ndarray, tuple[int, int]]) -> float:
+    """IoU of two :func:`mask_rows` of one image size (1.0 when both are empty)."""
+    (va, ua, ma, _), (vb, ub, mb, _) = a, b
     na, nb = int(np.count_nonzero(ma)), int(np.count_nonzero(mb))
-    lo, hi = max(ra, rb), min(ra + len(ma), rb + len(mb))
-    inter = int(np.count_nonzero(ma[lo - ra:hi - ra] & mb[lo - rb:hi - rb])) if hi > lo else 0
+    v0, v1 = max(va, vb), min(va + ma.shape[0], vb + mb.shape[0])
+    u0, u1 = max(ua, ub), min(ua + ma.shape[1], ub + mb.shape[1])
+    inter = 0
+    if v1 > v0 and u1 > u0:
+        inter = int(np.count_nonzero(ma[v0 - va:v1 - va, u0 - ua:u1 - ua] & mb[v0 - vb:v1 - vb, u0 - ub:u1 - ub]))
     union = na + nb - inter
     return 1.0 if union == 0 else inter / union
