@@ -42,12 +42,14 @@ def _cloud(points: np.ndarray, voxel: float):
     return pc
 
 
-def _icp(model_points: np.ndarray, cluster: np.ndarray, T: np.ndarray, cfg: ModelFitConfig) -> ModelFit:
+def _icp(model_points: np.ndarray, cluster: np.ndarray, T: np.ndarray, cfg: ModelFitConfig,
+         clouds: tuple | None = None) -> ModelFit:
     """Multi-scale point-to-plane ICP from the pose ``T`` (model -> reference). The cluster is
-    registered to the model (the cluster is the partial one), then the result inverted."""
+    registered to the model (the cluster is the partial one), then the result inverted.
+    ``clouds``: the (model, cluster) clouds of :func:`_cloud` at ``cfg.icp_mm[-1]`` when the
+    caller made them already (ICP reads them only: the same fit as with fresh ones)."""
     reg = o3d.pipelines.registration
-    src = _cloud(model_points, cfg.icp_mm[-1])
-    dst = _cloud(cluster, cfg.icp_mm[-1])
+    src, dst = clouds if clouds is not None else (_cloud(model_points, cfg.icp_mm[-1]), _cloud(cluster, cfg.icp_mm[-1]))
     res = None
     for d in cfg.icp_mm:
         res = reg.registration_icp(dst, src, d, np.linalg.inv(T), reg.TransformationEstimationPointToPlane(),
@@ -93,12 +95,13 @@ def fit_model(model_points: np.ndarray, cluster: np.ndarray, cfg: ModelFitConfig
         else:
             height = c @ up
         best = None
+        clouds = (_cloud(model_points, cfg.icp_mm[-1]), _cloud(cluster, cfg.icp_mm[-1]))  # one pair for the 12 turns
         for yaw in np.radians(np.arange(0, 360, 30)):
             R = R_up @ rotation_matrix(z, yaw)
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = c_h + height * up
-            fit = _icp(model_points, cluster, T, cfg)
+            fit = _icp(model_points, cluster, T, cfg, clouds)
             if _better(fit, best):
                 best = fit
         return best

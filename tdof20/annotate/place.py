@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from tdof20.annotate.config import AnnotateConfig
+from tdof20.annotate.executors import run_chunks
 from tdof20.annotate.fusion import cluster_shape, point_cloud
 from tdof20.annotate.models import fit_model
 from tdof20.errors import TdofError
@@ -65,6 +66,21 @@ def T_list(T: np.ndarray) -> list[float]:
 def T_arr(x: Any) -> np.ndarray:
     """16 numbers (row-major) as a (4,4) pose."""
     return np.asarray(x, float).reshape(4, 4)
+
+
+def _fit_jobs(jobs: list) -> list:
+    """[(i, j, fit)] of the matching fits [(i, j, model samples, cluster points, fit config, up,
+    model z_min, table plane)], each on one open3d thread (a worker of any executor, or this
+    process): open3d's ICP sums in thread order, so more threads would change the last digits."""
+    from tdof20.o3d import o3d
+
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        return [(i, j, fit_model(P, C, cfg, up=up, model_z_min=z_min, table_plane=plane))
+                for i, j, P, C, cfg, up, z_min, plane in jobs]
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def _thin(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -111,8 +127,6 @@ def match_models(models: dict, objects: list[int], clusters: list[np.ndarray], p
     scores (untried pairs cost more than any tried one) decides."""
     from scipy.optimize import linear_sum_assignment
 
-    from tdof20.progress import progress as _progress
-
     pc = cfg.place
     up, off = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
     n_o, n_c = len(objects), len(clusters)
@@ -144,11 +158,16 @@ def match_models(models: dict, objects: list[int], clusters: list[np.ndarray], p
         order = np.argsort(S[i])
         pairs += [(i, int(j)) for j in order[:pc.match_candidates] if S[i, j] <= S[i, order[0]] + pc.match_shape_margin]
     C = np.full((n_o, n_c), 0.0)
-    with _progress(progress, unit="fit") as bar:
-        task = bar.add_task("match models to clusters", total=len(pairs))
-        for i, j in pairs:
-            fit(i, j)
-            bar.advance(task)
+    # the candidate fits are independent: on the worker processes (each on one open3d thread,
+    # so each fit is the one this process would make)
+    for j in sorted({j for _, j in pairs}):
+        thin[j] = _thin(clusters[j], pc.match_voxel_mm)
+    jobs = [[(i, j, samples[objects[i]], thin[j], quick, up, float(models[objects[i]][0][:, 2].min()), plane)]
+            for i, j in pairs]
+    for done in run_chunks(_fit_jobs, jobs, workers=None if len(jobs) > 1 else 1, progress=progress,
+                           description="match models to clusters", unit="fit"):
+        for i, j, f in done:
+            fits[(i, j)] = f
     big = 10.0 + max([f.score for f in fits.values()], default=0.0)
     for i in range(n_o):
         for j in range(n_c):
