@@ -278,13 +278,20 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
             if r not in flags.setdefault(im, []):
                 flags[im].append(r)
 
-    session = None
     src = session_dir or info.get("source_session")
-    if src and Path(src).is_dir():
-        try:
-            session = RawSession.open(src)
-        except TdofError:
+    opened: list = []   # the source session, opened when a frame first needs it (parsing its
+                        # journal costs ~1 s for 3,200 frames; a labelled frame never does)
+
+    def source_session():
+        if not opened:
             session = None
+            if src and Path(src).is_dir():
+                try:
+                    session = RawSession.open(src)
+                except TdofError:
+                    session = None
+            opened.append(session)
+        return opened[0]
 
     def arm_step(im: int):
         return divmod(int(im), int(steps)) if steps else (None, None)
@@ -294,7 +301,8 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
         if p.exists():
             return read_png(p, kind="rgb")
         a, k = arm_step(im)
-        if session is not None and a is not None and session.has_frame("transparent", a, k):
+        session = source_session() if a is not None else None
+        if session is not None and session.has_frame("transparent", a, k):
             return session.load_rgb("transparent", a, k)
         return None
 
