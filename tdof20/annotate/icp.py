@@ -247,6 +247,41 @@ def _log_so3(R: np.ndarray) -> np.ndarray:
     return s * (th / sn if sn > 1e-12 else 1.0)
 
 
+def prior_weights(prior: np.ndarray, centre: np.ndarray, cfg: RegistrationConfig,
+                  sigma_deg: float | None = None, sigma_mm: float | None = None):
+    """The Gaussian prior of :func:`icp_prior`: (the diagonal weights (6,) of the deviation
+    (rotation vector, displacement of ``centre``) relative to one point-to-plane residual,
+    inv(prior), the centre)."""
+    sigma_deg = cfg.prior_sigma_deg if sigma_deg is None else sigma_deg
+    sigma_mm = cfg.prior_sigma_mm if sigma_mm is None else sigma_mm
+    lam = np.r_[np.full(3, (cfg.prior_sigma_r_mm / math.radians(sigma_deg)) ** 2),
+                np.full(3, (cfg.prior_sigma_r_mm / sigma_mm) ** 2)]
+    return lam, invert(prior), np.asarray(centre, float)
+
+
+def prior_step(T: np.ndarray, X: np.ndarray, q: np.ndarray, nn: np.ndarray, T0inv: np.ndarray, c: np.ndarray,
+               lam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One Gauss-Newton step of point-to-plane ICP with the prior (:func:`prior_weights`): moved
+    source points X (M,3) against target points q with unit normals nn. Returns (the updated T,
+    the step's rotation vector w, its displacement v of the centre)."""
+    r = np.einsum("ij,ij->i", X - q, nn)
+    J = np.empty((len(r), 6))
+    a = X - c
+    J[:, 0] = a[:, 1] * nn[:, 2] - a[:, 2] * nn[:, 1]   # (X - c) x n
+    J[:, 1] = a[:, 2] * nn[:, 0] - a[:, 0] * nn[:, 2]
+    J[:, 2] = a[:, 0] * nn[:, 1] - a[:, 1] * nn[:, 0]
+    J[:, 3:] = nn
+    D = T @ T0inv                                   # deviation from the prior (target frame)
+    dev = np.r_[_log_so3(D[:3, :3]), D[:3, :3] @ c + D[:3, 3] - c]
+    xi = -np.linalg.solve(J.T @ J + np.diag(lam), J.T @ r + lam * dev)
+    w, v = xi[:3], xi[3:]
+    Rw = _exp_so3(w)
+    step = np.eye(4)
+    step[:3, :3] = Rw
+    step[:3, 3] = c - Rw @ c + v
+    return step @ T, w, v
+
+
 def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray, cfg: RegistrationConfig,
               levels: list[int] | None = None, information: bool = True,
               sigma_deg: float | None = None, sigma_mm: float | None = None):
@@ -261,13 +296,7 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
     Closed-form maths in the loop (Rodrigues' formula for the step, the deviation's rotation
     vector from the skew part) instead of scipy's Rotation objects."""
     T = np.asarray(prior, float).copy()
-    T0inv = invert(prior)
-    c = np.asarray(centre, float)
-    sigma_deg = cfg.prior_sigma_deg if sigma_deg is None else sigma_deg
-    sigma_mm = cfg.prior_sigma_mm if sigma_mm is None else sigma_mm
-    lam = np.r_[np.full(3, (cfg.prior_sigma_r_mm / math.radians(sigma_deg)) ** 2),
-                np.full(3, (cfg.prior_sigma_r_mm / sigma_mm) ** 2)]
-    L = np.diag(lam)
+    lam, T0inv, c = prior_weights(prior, centre, cfg, sigma_deg, sigma_mm)
     levels = list(range(len(cfg.voxel_sizes_mm))) if levels is None else list(levels)
     for i in levels:
         dist = cfg.icp_dist_factor * cfg.voxel_sizes_mm[i]
@@ -282,24 +311,8 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
             ok = d < np.inf
             if np.count_nonzero(ok) < 10:
                 break
-            Xo, j = X[ok], idx[ok]
-            q, nn = Q[j], N[j]
-            r = np.einsum("ij,ij->i", Xo - q, nn)
-            J = np.empty((len(r), 6))
-            a = Xo - c
-            J[:, 0] = a[:, 1] * nn[:, 2] - a[:, 2] * nn[:, 1]   # (X - c) x n
-            J[:, 1] = a[:, 2] * nn[:, 0] - a[:, 0] * nn[:, 2]
-            J[:, 2] = a[:, 0] * nn[:, 1] - a[:, 1] * nn[:, 0]
-            J[:, 3:] = nn
-            D = T @ T0inv                                   # deviation from the prior (target frame)
-            dev = np.r_[_log_so3(D[:3, :3]), D[:3, :3] @ c + D[:3, 3] - c]
-            xi = -np.linalg.solve(J.T @ J + L, J.T @ r + lam * dev)
-            w, v = xi[:3], xi[3:]
-            Rw = _exp_so3(w)
-            step = np.eye(4)
-            step[:3, :3] = Rw
-            step[:3, 3] = c - Rw @ c + v
-            T = step @ T
+            j = idx[ok]
+            T, w, v = prior_step(T, X[ok], Q[j], N[j], T0inv, c, lam)
             if np.linalg.norm(w) < cfg.icp_tol_rad and np.linalg.norm(v) < cfg.icp_tol_mm:
                 break
     n = levels[-1]
@@ -311,11 +324,11 @@ def icp_prior(src: Pyramid, tgt: Pyramid, prior: np.ndarray, centre: np.ndarray,
     ok = np.isfinite(d)
     fit = float(ok.mean()) if len(S) else 0.0
     rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
-    info = _information(Q[idx[ok]].astype(np.float64)) if information and len(S) >= 10 else np.eye(6)
+    info = information_matrix(Q[idx[ok]].astype(np.float64)) if information and len(S) >= 10 else np.eye(6)
     return T, fit, rmse, info
 
 
-def _information(q: np.ndarray) -> np.ndarray:
+def information_matrix(q: np.ndarray) -> np.ndarray:
     """(6,6) information matrix of a registration from the target points (M,3) of its inlier
     correspondences — open3d's GetInformationMatrixFromPointClouds, from the correspondences the
     ICP already found instead of a second nearest-neighbour search (measured: 19 of 155 s per arm)."""
@@ -348,12 +361,13 @@ def edge_pairs(steps: list[int], step_deg: float, angles: tuple[float, ...]) -> 
 
 def pose_graph_pass(pyr: dict[int, Pyramid], cfg: RegistrationConfig, arm: int, axis_dir: np.ndarray,
                     axis_point: np.ndarray, radius: float, step_deg: float, sign: float, max_deg: float,
-                    max_mm: float, angles: tuple[float, ...], levels: list[int], prog, task
+                    max_mm: float, angles: tuple[float, ...], levels: list[int], prog, task, pair_icp=None
                     ) -> tuple[dict[int, np.ndarray], dict[int, list[tuple[float, float, bool]]]]:
     """Pairwise ICP + pose graph over the usable frames of arm position ``arm`` (``pyr``: step ->
     its cloud, cropped to the turntable volume of ``radius`` about the axis ``axis_dir`` through
     ``axis_point``), each edge started from the turntable prior and dropped when it ends further
-    than ``max_deg`` / ``max_mm`` from it.
+    than ``max_deg`` / ``max_mm`` from it. ``pair_icp(src, tgt, init, centre, cfg, levels)`` registers
+    a pair (default: :func:`icp_prior`, or :func:`icp` without ``prior_weighted_icp``).
     Returns (step -> T_arm_frame, step -> [(fitness, rmse, kept) of each of its edges])."""
     steps = sorted(pyr)
     prior = {k: turntable_prior(axis_dir, axis_point, k * step_deg, sign) for k in steps}
@@ -367,7 +381,9 @@ def pose_graph_pass(pyr: dict[int, Pyramid], cfg: RegistrationConfig, arm: int, 
             pyr[target].release()                     # its trees are not needed again
         target = i
         init = invert(prior[i]) @ prior[j]            # cam(j) -> cam(i)
-        if cfg.prior_weighted_icp:
+        if pair_icp is not None:
+            T, fit, rmse, info = pair_icp(pyr[j], pyr[i], init, axis_point, cfg, levels)
+        elif cfg.prior_weighted_icp:
             T, fit, rmse, info = icp_prior(pyr[j], pyr[i], init, axis_point, cfg, levels=levels)
         else:
             T, fit, rmse, info = icp(pyr[j], pyr[i], init, cfg, levels=levels)

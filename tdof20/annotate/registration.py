@@ -82,6 +82,8 @@ from typing import Any
 
 import numpy as np
 
+from tdof20.annotate.depthmaps import (DepthMap, MapPyramid, block_depth, icp_maps, map_stride, source_points,
+                                      strided_camera)
 from tdof20.annotate.icp import Pyramid, edge_pairs, icp, icp_prior, point_cloud, pose_graph_pass
 from tdof20.annotate.turntable import (T_diff, VolumeCrop, check_turntable, disk_radius, fit_axis, height_radius,
                                        load_points, rot_deg, sampled_motion, table_plane, turntable_prior)
@@ -115,9 +117,19 @@ class RegistrationConfig:
     normal_max_nn: int = 30                   # quantisation terraces must not tilt them)
     icp_tol_rad: float = 2e-5                 # an ICP level stops when its step turns less than this (0.001 deg)
     icp_tol_mm: float = 2e-3                  # ... and moves less than this (measured: 16 -> 13 s CPU per 40 frames, same accuracy)
-    normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud and handed to the
-                                              # finest level's points (nearest): 4x fewer points and
-                                              # neighbours; None = on the finest level itself
+    association: str = "auto"                 # frame-to-frame correspondences: "projective" (the target
+                                              # pixel a moved point projects to, on depth maps block-averaged to
+                                              # each scale: tdof20.annotate.depthmaps), "closest" (the nearest
+                                              # point of voxel-downsampled clouds, a k-d tree), or "auto":
+                                              # projective where a pixel is at most half the finest scale at the
+                                              # table (640x480: ~3x less CPU, as accurate), else closest (on
+                                              # coarse pixels, ~4 mm at 160x120, its correspondences are better)
+    map_max_variation: float = 0.05           # projective: a pixel whose window's smallest principal axis holds
+                                              # more than this share of the spread (an edge) has no normal
+    normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud (closest: a voxel grid;
+                                              # projective: the map of the scale of this size) and handed to the
+                                              # finer levels' points (nearest / the pixel holding them): 4x fewer
+                                              # points; None = each level its own
     # data: depth range and plane
     min_depth_mm: float = 150.0
     max_depth_mm: float = 2000.0
@@ -140,9 +152,10 @@ class RegistrationConfig:
     edge_angles_deg: tuple[float, ...] = (0.0, 15.0, 30.0)  # 0 = one step; others rounded to steps
     pass1_edge_angles_deg: tuple[float, ...] = (0.0, 30.0)  # pass 1 (axis only): fewer edges ...
     pass1_levels: int = 1                     # ... and only the coarsest ICP scale(s)
-    pass2_first_level: int = 2                # pass 2 starts at this ICP scale: pass 1 and the refitted axis
-                                              # already put every frame within a fraction of a degree (measured:
-                                              # 123 -> 89 s CPU per arm of 400 frames, the same accuracy)
+    pass2_first_level: int = 1                # pass 2 starts at this ICP scale: pass 1 and the refitted axis
+                                              # put every good frame within a fraction of a degree, and the 4 mm
+                                              # scale lets a bad frame's edges slide far enough from the prior to
+                                              # be dropped (with "closest", 2 saved 123 -> 89 s CPU per arm)
     edge_min_fitness: float = 0.3
     prior_weighted_icp: bool = True           # pairwise ICP regularised towards the turntable prior
     prior_sigma_deg: float = 0.1              # ... its rotation uncertainty (a symmetric object
@@ -186,7 +199,9 @@ class RegistrationConfig:
             "arm_axis_max_mm", "arm_axis_max_deg", "arm_plane_max_mm"),
             non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
                           "pass2_first_level"),
-            fraction=("plane_window", "plane_max_below", "plane_moving_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
+            fraction=("map_max_variation", "plane_window", "plane_max_below", "plane_moving_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
+        if self.association not in ("auto", "projective", "closest"):
+            raise TdofError(f"register.association must be 'auto', 'projective' or 'closest', got '{self.association}'")
         if self.max_depth_mm <= self.min_depth_mm:
             raise TdofError(f"register.max_depth_mm ({self.max_depth_mm}) must be above register.min_depth_mm "
                             f"({self.min_depth_mm})")
@@ -247,9 +262,10 @@ class ArmRegistration:
     correction_mm: float = 0.0
     flagged: bool = False
     reason: str = ""
+    association: str = ""                     # the frame-to-frame correspondences used (projective / closest)
 
     def to_dict(self) -> dict:
-        return {"arm": self.arm, "axis_dir": _v(self.axis_dir), "axis_point": _v(self.axis_point),
+        return {"arm": self.arm, "association": self.association, "axis_dir": _v(self.axis_dir), "axis_point": _v(self.axis_point),
                 "plane_normal": _v(self.plane_normal), "plane_d": float(self.plane_d),
                 "crop_radius": float(self.crop_radius), "T_ref_arm": _T_list(self.T_ref_arm),
                 "T_ref_arm_prior": _T_list(self.T_ref_arm_prior), "fitness": _f(self.fitness),
@@ -262,7 +278,7 @@ class ArmRegistration:
                    np.asarray(d["plane_normal"], float), float(d["plane_d"]), float(d["crop_radius"]),
                    _T_arr(d["T_ref_arm"]), _T_arr(d["T_ref_arm_prior"]), _uf(d["fitness"]), _uf(d["rmse"]),
                    float(d["correction_deg"]), float(d["correction_mm"]), bool(d["flagged"]),
-                   str(d.get("reason", "")))
+                   str(d.get("reason", "")), str(d.get("association", "")))
 
 
 @dataclass
@@ -380,6 +396,7 @@ class _Arm:
         self.axis_source = ""
         self.moving = np.zeros((0, 3))            # points that moved between sampled frames (the objects)
         self.plane_problem = ""                   # why the table top is a guess ("" when it is not)
+        self.association = ""                     # the correspondences used ("projective" / "closest")
 
 
 def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: float, prog,
@@ -455,15 +472,51 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     pass_levels = [list(range(0, p1_lv)), list(range(p2_first, n_lv))]
     loose_levels = set(pass_levels[1]) | {n_lv - 1}          # the fused cloud takes the finest level
     task = prog.add_task(f"arm {arm}: load", total=len(available))
-    crop = VolumeCrop(info.camera, cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm + 100.0)
+    cam = info.camera
+    depth = float(A.axis_point[2]) if A.axis_point[2] > 0 else float(np.median(full[0][:, 2])) if len(full) else 500.0
+    strides = {i: map_stride(cam, depth, cfg.voxel_sizes_mm[i]) for i in range(n_lv)}
+    projective = cfg.association == "projective" or (cfg.association == "auto" and strides[n_lv - 1] >= 2)
+    A.association = "projective" if projective else "closest"
+    if projective:   # depth maps at each scale's stride; their crops (ray maps) made once per camera
+        cams = {i: strided_camera(cam, strides[i]) for i in range(n_lv)}
+        windows = {i: 2 * int(cfg.normal_radius_mm // (cfg.voxel_sizes_mm[i] * 1.0)) + 1 for i in range(n_lv)}
+        crops1 = {i: VolumeCrop(cams[i], cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm) for i in pass_levels[0]}
+        loose_crops = {i: VolumeCrop(cams[i], cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm + 100.0)
+                       for i in loose_levels if i not in crops1}
+        all_crops = {**crops1, **loose_crops}
+        # normals estimated once, on the normal_voxel_mm scale, and handed to the finer maps (the
+        # same window in mm on 4x fewer pixels), where the strides allow it
+        normal_level = next((i for i in range(n_lv) if cfg.normal_voxel_mm and cfg.voxel_sizes_mm[i] == cfg.normal_voxel_mm
+                             and all(strides[i] % strides[j] == 0 for j in range(i + 1, n_lv))), n_lv)
+        fine_crop1 = VolumeCrop(cams[n_lv - 1], cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm)
+    else:
+        crop = VolumeCrop(info.camera, cfg, A.axis_dir, A.axis_point, cfg.max_crop_radius_mm + 100.0)
     origin = np.zeros(3)
-    loose: dict[int, Pyramid] = {}
-    pass1: dict[int, Pyramid] = {}
+    loose: dict[int, Any] = {}
+    pass1: dict[int, Any] = {}
     for k in available:
         try:
             z = session.load_depth_mm(cfg.phase, arm, k)
         except TdofError as e:
             A.bad[k] = str(e)
+            prog.advance(task)
+            continue
+        if projective:
+            zb = block_depth(z, [strides[i] for i in all_crops], cfg.min_depth_mm, cfg.max_depth_mm, cam.fx)
+            maps = {}
+            for i in sorted(all_crops):   # coarse to fine: a finer map may take the normal level's normals
+                src = maps.get(normal_level) if i > normal_level and normal_level in loose_crops else None
+                maps[i] = DepthMap(zb[strides[i]], all_crops[i], cfg, windows[i], source_points(cfg, i),
+                                   normals_from=src if i in loose_crops else None)
+            fine = MapPyramid([maps.get(i) if i in loose_levels else None for i in range(n_lv)])
+            if len(fine) < cfg.min_points:
+                A.bad[k] = f"too few depth points on the turntable ({len(fine)} < {cfg.min_points})"
+            else:
+                c1 = MapPyramid([maps.get(i) if i in crops1 else None for i in range(n_lv)],
+                                n_fine=fine.count_inside(fine_crop1))
+                if len(c1) >= cfg.min_points:
+                    pass1[k] = c1
+                loose[k] = fine
             prog.advance(task)
             continue
         fine = point_cloud(crop.points(z)).voxel_down_sample(cfg.voxel_sizes_mm[-1])
@@ -480,11 +533,14 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     if len(usable) < 2:
         raise TdofError(f"arm {arm}: fewer than 2 usable {cfg.phase} frames")
 
-    def pass2_pyramids(radius: float) -> dict[int, Pyramid]:
+    def pass2_pyramids(radius: float) -> dict[int, Any]:
         """Pass 2's levels cropped about the refined axis; the loose crops are dropped on the way."""
         out = {}
+        if projective:
+            crops = {i: VolumeCrop(cams[i], cfg, A.axis_dir, A.axis_point, radius) for i in pass_levels[1]}
         for k in usable:
-            c = loose.pop(k).cropped(A.axis_dir, A.axis_point, radius, levels=pass_levels[1])
+            c = loose.pop(k)
+            c = c.cropped(crops) if projective else c.cropped(A.axis_dir, A.axis_point, radius, levels=pass_levels[1])
             if len(c) >= cfg.min_points:
                 out[k] = c
         return out
@@ -503,7 +559,8 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
         n_pairs = len(edge_pairs(sorted(pyr), sd, angles))
         task = prog.add_task(f"arm {arm}: pairwise ICP (pass {pass_no + 1})", total=n_pairs)
         poses, edge_stats = pose_graph_pass(pyr, cfg, arm, A.axis_dir, A.axis_point, A.radius, sd, sign, mx_deg,
-                                            mx_mm, angles, list(range(first, nl)), prog, task)
+                                            mx_mm, angles, list(range(first, nl)), prog, task,
+                                            pair_icp=icp_maps if projective else None)
         ks = np.array(sorted(poses))
         Ts = np.stack([poses[k] for k in ks])
         # fit the axis on frames that agree with the current prior (robust to a bad frame)
@@ -537,7 +594,7 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     if cfg.refine_against_model:
         pre_ok = [k for k in sorted(pyr) if max(residual(poses[k], k)[0] / cfg.max_residual_deg,
                                                 residual(poses[k], k)[1] / cfg.max_residual_mm) <= 1.0]
-        model = _fuse([pyr[k].levels[-1] for k in pre_ok], [poses[k] for k in pre_ok], cfg.model_voxel_mm)
+        model = _fuse([_fine_cloud(pyr[k]) for k in pre_ok], [poses[k] for k in pre_ok], cfg.model_voxel_mm)
         model_pyr = Pyramid.from_cloud(model, cfg)
         task = prog.add_task(f"arm {arm}: refine", total=len(pyr))
     final: dict[int, np.ndarray] = {}
@@ -549,7 +606,8 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
             continue
         reasons = []
         if cfg.refine_against_model:
-            T, fit, rmse, _ = icp(pyr[k], model_pyr, poses[k], cfg, cfg.frame_icp_dist_mm, levels=[n_lv - 1],
+            src = Pyramid([None] * (n_lv - 1) + [_fine_cloud(pyr[k])], cfg) if projective else pyr[k]
+            T, fit, rmse, _ = icp(src, model_pyr, poses[k], cfg, cfg.frame_icp_dist_mm, levels=[n_lv - 1],
                                   information=False)
             prog.advance(task)
         else:
@@ -572,8 +630,13 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
         final[k] = T
         frames.append(FrameRegistration(arm, k, T, fit, rmse, rd, rm, bool(reasons), "; ".join(reasons)))
     good = [f.step for f in frames if not f.flagged]
-    fused = _fuse([pyr[k].levels[-1] for k in good], [final[k] for k in good], cfg.model_voxel_mm)
+    fused = _fuse([_fine_cloud(pyr[k]) for k in good], [final[k] for k in good], cfg.model_voxel_mm)
     return A, final, frames, fused
+
+
+def _fine_cloud(pyr) -> tuple[np.ndarray, np.ndarray]:
+    """(points, normals) of a frame's finest scale: a Pyramid's finest level, a MapPyramid's pixels with a normal."""
+    return pyr.finest().points() if isinstance(pyr, MapPyramid) else pyr.levels[-1]
 
 
 def _fuse(clouds: list, poses: list[np.ndarray], voxel: float) -> "o3d.geometry.PointCloud":
@@ -778,7 +841,8 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
             T_prior = invert(T_base_cam0) @ info.T_base_cam(a)
             arms.append(ArmRegistration(a, A.axis_dir, A.axis_point, A.plane_n, A.plane_d, A.radius,
                                         T_prior.copy() if a else np.eye(4), T_prior if a else np.eye(4),
-                                        flagged=bool(A.plane_problem), reason=A.plane_problem))
+                                        flagged=bool(A.plane_problem), reason=A.plane_problem,
+                                        association=A.association))
         # --- the arms' axes must agree through the robot's poses --------------------------------
         _cross_check_axes(arms, "T_ref_arm_prior", cfg, "through the robot's poses")
         # --- relate the arm positions ---------------------------------------------------------

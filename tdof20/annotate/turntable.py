@@ -138,16 +138,20 @@ class VolumeCrop:
         self.rp = rays @ np.asarray(p, float)
         self.rr = np.einsum("hwc,hwc->hw", rays, rays)
 
-    def points(self, z: np.ndarray) -> np.ndarray:
-        """(N,3) float64 points (mm, camera frame) of the depth image ``z`` (mm) inside the volume,
-        in pixel order — the points ``crop_points(load_points(...))`` gives."""
+    def mask(self, z: np.ndarray) -> np.ndarray:
+        """(H,W) bool: the pixels of the depth image ``z`` (mm, this crop's camera) whose points lie
+        inside the volume (and within the depth range)."""
         cfg = self.cfg
         z64 = np.asarray(z, np.float64)
         h = z64 * self.rn - self.pn
         r2 = z64 * (z64 * self.rr - 2.0 * self.rp) + self.pp - h * h
-        keep = ((z64 >= cfg.min_depth_mm) & (z64 <= cfg.max_depth_mm) & (h >= -cfg.crop_below_mm)
+        return ((z64 >= cfg.min_depth_mm) & (z64 <= cfg.max_depth_mm) & (h >= -cfg.crop_below_mm)
                 & (h <= cfg.crop_height_mm) & (r2 <= self.radius * self.radius))
-        v, u = np.nonzero(keep)
+
+    def points(self, z: np.ndarray) -> np.ndarray:
+        """(N,3) float64 points (mm, camera frame) of the depth image ``z`` (mm) inside the volume,
+        in pixel order — the points ``crop_points(load_points(...))`` gives."""
+        v, u = np.nonzero(self.mask(z))
         zf = np.asarray(z, np.float32)
         return (self.cam.pixel_rays()[v, u] * zf[v, u, None]).astype(np.float64)
 
@@ -279,6 +283,9 @@ def _turn_between(P: np.ndarray, Q: np.ndarray, n: np.ndarray, origin: np.ndarra
 # ---------------------------------------------------------------------------------------------
 # the turn between sampled frames, the direction and step checks, the table top
 # ---------------------------------------------------------------------------------------------
+MOTION_POINTS = 20_000   # at most this many moving points of a sampled frame measure its turn
+
+
 def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int], n: np.ndarray,
                    d: float, sign: float, check: bool = False) -> tuple[list[dict], np.ndarray]:
     """The turn of the moving part between consecutive sampled frames of an arm position:
@@ -299,7 +306,12 @@ def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps
     clouds = []
     for pts in _frame_moving_points(imgs, cam):
         h = pts @ n + d
-        clouds.append(pts[(h > 5.0) & (h < cfg.crop_height_mm)])
+        pts = pts[(h > 5.0) & (h < cfg.crop_height_mm)]
+        # at most MOTION_POINTS (a seeded subsample): 640x480 gives ~4x the points of 320x240, and
+        # the k-d tree matching in _turn_between took 2/3 of the check's time; smaller images keep all
+        if len(pts) > MOTION_POINTS:
+            pts = pts[np.sort(np.random.default_rng(len(pts)).choice(len(pts), MOTION_POINTS, replace=False))]
+        clouds.append(pts)
     out = []
     for i in range(len(steps) - 1):
         P, Q = clouds[i], clouds[i + 1]
@@ -461,6 +473,9 @@ def _refine_plane(pts: np.ndarray, n: np.ndarray, d: float, dist: float, iters: 
     return n, d, count
 
 
+PLANE_REFINE_POINTS = 300_000   # at most about this many of the sampled frames' points refine a plane
+
+
 def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: list[int],
                 prior_up: np.ndarray, report: dict | None = None) -> tuple[np.ndarray, float, list[np.ndarray]]:
     """The turntable top of one arm position. Returns (n, d, full clouds): n.x + d = 0, n towards
@@ -488,6 +503,7 @@ def table_plane(session: RawSession, cfg: RegistrationConfig, arm: int, steps: l
     pc = pc.voxel_down_sample(cfg.voxel_sizes_mm[1])
     cpts = np.asarray(pc.points).copy()
     allp = np.concatenate(full)
+    allp = allp[::max(1, len(allp) // PLANE_REFINE_POINTS)]   # least squares on ~300k points is as good as on millions
     cands = []                     # (n, d, inliers, angle) of planes near the vertical prior
     first = None
     for it in range(5):   # seeded numpy RANSAC: open3d's segment_plane is not repeatable on several threads
