@@ -448,10 +448,20 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
         pairs, A.moving = m["pairs"], np.asarray(m["moving"], float)
     else:
         pairs, A.moving = sampled_motion(session, cfg, arm, good_sample, n, d, sign)
-    pairs = [p for p in pairs if p["score"] >= 0.3]
-    if pairs:
-        centre = np.median(np.stack([p["centre"] for p in pairs]), axis=0)
-        A.axis_source = f"motion of the objects ({len(pairs)} frame pairs)"
+    good = [p for p in pairs if p["score"] >= 0.3]
+    agree = _agreeing_centres([p["centre"] for p in pairs if p["score"] >= 0.1], n)
+    _, r_mov = height_radius(A.moving, n, foot)
+    if good:
+        centre = np.median(np.stack([p["centre"] for p in good]), axis=0)
+        A.axis_source = f"motion of the objects ({len(good)} frame pairs)"
+    elif agree is not None:   # big turns between the sampled frames fit poorly (the objects look
+        # different from afar), but independent pairs that turn about one centre agree on it
+        centre = agree
+        A.axis_source = "motion of the objects (frame pairs that fit poorly but agree on the centre)"
+    elif (r_mov < cfg.max_crop_radius_mm).sum() >= 200:   # what moves: the objects, never the static room
+        mov = A.moving[r_mov < cfg.max_crop_radius_mm]
+        centre = mov.mean(axis=0)
+        A.axis_source = "centroid of the moving points (their turn could not be measured)"
     else:   # nothing moves enough to tell (a round object on the axis): what stands on the table
         above = []
         for pts in full:
@@ -632,6 +642,22 @@ def _register_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: 
     good = [f.step for f in frames if not f.flagged]
     fused = _fuse([_fine_cloud(pyr[k]) for k in good], [final[k] for k in good], cfg.model_voxel_mm)
     return A, final, frames, fused
+
+
+def _agreeing_centres(centres: list[np.ndarray], n: np.ndarray, tol_mm: float = 15.0) -> np.ndarray | None:
+    """The median of the turn centres (measured between sampled frames) when at least three of them,
+    and most, lie within ``tol_mm`` of it across the axis (along ``n``, the table normal, the
+    centres may differ: the axis is a line); else None."""
+    if len(centres) < 3:
+        return None
+    C = np.stack(centres)
+    med = np.median(C, axis=0)
+    d = C - med
+    off = np.linalg.norm(d - np.outer(d @ n, n), axis=1)
+    close = off <= tol_mm
+    if close.sum() >= 3 and 2 * close.sum() > len(C):
+        return np.median(C[close], axis=0)
+    return None
 
 
 def _fine_cloud(pyr) -> tuple[np.ndarray, np.ndarray]:
