@@ -71,13 +71,16 @@ def T_arr(x: Any) -> np.ndarray:
 def _fit_jobs(jobs: list) -> list:
     """[(i, j, fit)] of the matching fits [(i, j, model samples, cluster points, fit config, up,
     model z_min, table plane)], each on one open3d thread (a worker of any executor, or this
-    process): open3d's ICP sums in thread order, so more threads would change the last digits."""
+    process): open3d's ICP sums in thread order, so more threads would change the last digits.
+    The arrays are copied first: Ray hands a task's arrays out read-only, and open3d's point
+    vectors take writable ones only."""
     from tdof20.o3d import o3d
 
     before = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:
-        return [(i, j, fit_model(P, C, cfg, up=up, model_z_min=z_min, table_plane=plane))
+        return [(i, j, fit_model(np.array(P), np.array(C), cfg, up=np.array(up), model_z_min=z_min,
+                                 table_plane=np.array(plane)))
                 for i, j, P, C, cfg, up, z_min, plane in jobs]
     finally:
         o3d.utility.set_max_threads(before)
