@@ -696,12 +696,14 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
                   preset: Optional[str] = typer.Option(None, "--preset", help="smoke, cpu, gpu or full "
                                                        "\\[the TOML's, else smoke]"),
                   config: Optional[Path] = typer.Option(None, "--config", help="TOML over the preset (methods, "
-                                                        "\\[data], \\[train], \\[epochs], \\[ablations], \\[profile])"),
+                                                        "\\[data], \\[train], \\[epochs], \\[ablations], \\[profile], "
+                                                        "\\[select], \\[candidates.METHOD])"),
                   dataset: Optional[Path] = typer.Option(None, "--dataset", help="a dataset root to use instead of "
                                                          "simulating one (e.g. an imported TDoF20)")) -> None:
     """The paper's Tables 1-3 and both ablations with one command: dataset, train every method on
-    both protocols, predict, score, profile, OUT/tables/tables.md (+ CSV, JSON, plots); resumable.
-    See docs/reproduce.md."""
+    both protocols (on the train part minus its validation part), choose epochs and options on
+    validation, predict and score the test part, profile, OUT/tables/tables.md (+ CSV, JSON,
+    plots); resumable. See docs/reproduce.md."""
     from tdof20.benchmark.reproduce import reproduce
 
     reproduce(out, preset=preset, config=config, dataset=dataset)

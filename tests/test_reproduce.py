@@ -259,7 +259,9 @@ def test_config_errors_and_presets(tmp_path):
     ok = tmp_path / "ok.toml"
     ok.write_text('preset = "cpu"\nmethods = ["hff6dof"]\n[epochs]\nhff6dof = 3\n')
     c = make_config(None, ok)
-    assert c.preset == "cpu" and c.methods == ("hff6dof",) and c.epochs.hff6dof == 3 and c.data.steps == 24
+    assert c.preset == "cpu" and c.methods == ("hff6dof",) and c.epochs.hff6dof == 3 and c.data.steps == 12
+    assert c.candidates["hff6dof"]["depth_mode"] == ["filled", "raw"] and c.select.every == 2
+    assert make_config("smoke").candidates == {} and make_config("smoke").select.epochs == "best"
 
 
 def test_cli_command(tmp_path):

@@ -9,17 +9,27 @@ Stages (each finished job is recorded in ``DIR/reproduce.json`` with the config'
     dataset    simulated TDoF20 scenes (capture on the simulated rig + oracle labels, as
                ``tdof20 sim label`` writes them) gathered by ``dataset build`` -> DIR/dataset;
                or the given dataset root (e.g. an imported TDoF20), used in place
-    train      every method on each protocol -> DIR/runs/<method>_<protocol>/ (plus the ablations'
-               HFF6DoF runs on hard: fuse<N>_hard, noseg_hard)
-    predict    each run's test part -> DIR/results/<name>.csv (+ _info.json); HFF6DoF also with the
-               paper's 3D voting + least squares (``hff6dof-3d``): its own run, trained with
-               vector_origin = "observed" (vectors from the input depth's points, the points 3D
-               voting back-projects; docs/hff6dof.md), predicted with voting = "3d"
+    train      every method on each protocol's train part minus its validation part
+               -> DIR/runs/<method>_<protocol>/ (plus the ablations' HFF6DoF runs on hard:
+               fuse<N>_hard, noseg_hard, and the paper's pose recovery's own run hff6dof-3d_<protocol>,
+               trained with vector_origin = "observed"); with several epochs, epoch by epoch: each
+               validated epoch's checkpoint is predicted and scored on the validation part and the
+               best one is copied to RUN/kept/ ([select])
+    choose     on the validation part only: the prediction-time options of [candidates.<method>]
+               (the input depth mode, thresholds) on each kept checkpoint; which of HFF6DoF's two
+               pose recoveries (bearing + PnP, 3D voting + LSQ) stands for HFF6DoF in the
+               agreement claims, per protocol
+    predict    each kept checkpoint on its test part, with the options chosen -> DIR/results/<name>.csv
+               (+ _info.json); ``hff6dof-3d`` with voting = "3d"
     score      ADD(S), 2D projection, AUC and accuracy curves -> DIR/scores/<name>.json, with
                "oracle_masks" when ground-truth masks picked the pixels (the run without the
                segmentation head)
     profile    Table 3 (parameters, multiply-adds at 480x640, FPS) of every method -> DIR/profile.json
-    tables     DIR/tables/: tables.md, CSV, JSON, plots (tdof20.benchmark.tables)
+    tables     DIR/tables/: tables.md (with what was chosen on validation), CSV, JSON, plots
+
+The test part is predicted and scored once per result, after every choice: nothing is chosen on it.
+Validation predictions go to DIR/val/<run>/ (their targets DIR/val/targets_<protocol>.json) and
+their figures to reproduce.json ("validation"), so that a resumed run predicts none twice.
 
 Resuming: a rerun on the same DIR skips the jobs recorded as done (a training interrupted in the
 middle resumes from its checkpoint); a rerun with another config (another preset, TOML or
@@ -42,9 +52,18 @@ scale). A TOML file sets any option over the preset it names (``preset = "cpu"``
     fuse_stages = [1, 3]
     segmentation = true
 
+    [select]
+    epochs = "best"            # "last": no validation of epochs
+    every = 1                  # validate every N-th epoch (and the last)
+    max_images = 0             # at most this many validation images per protocol (0 = all)
+    [candidates.hff6dof]       # prediction-time options chosen on validation (first = default)
+    depth_mode = ["filled", "raw"]
+
 Train / predict / score / profile go through the small adapter functions below
 (:func:`train_run`, :func:`predict_run`, :func:`score_run`, :func:`profile_methods`): the method
-registry's loops (:mod:`tdof20.methods.train`, :mod:`tdof20.methods.predict`).
+registry's loops (:mod:`tdof20.methods.train`, :mod:`tdof20.methods.predict`). :func:`plan` counts
+what a config asks for and :func:`estimate` multiplies it by measured unit times
+(``benchmarks/methods_profile.py --estimate PRESET``).
 """
 
 from __future__ import annotations
@@ -238,17 +257,18 @@ CANDIDATES = {"hff6dof": {"depth_mode": ["filled", "raw"], "bearing_tol": [0.02,
 #: the presets, as TOML-like data over the defaults
 PRESETS: dict[str, dict] = {
     "smoke": {"data": {"scenes": ["single/juice_cup_340", "single/handle_cup_280", "multi/08", "multi/01"],
-                       "steps": 12, "step_deg": 2.5, "n_arms": 4, "width": 80, "height": 60},
+                       "steps": 6, "step_deg": 5.0, "n_arms": 4, "width": 80, "height": 60},
               "train": {"image_size": [32, 48], "batch_size": 4, "lr": 2e-3, "max_steps": 6},
               "epochs": {m: 1 for m in METHODS},
               "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
               "profile": {"height": 120, "width": 160, "repeats": 1},
-              "method_options": {"ffb6d": {"n_points": 1024, "meanshift_iters": 30, "max_votes": 500},
-                                 "densefusion": {"n_points": 200, "crop_size": 64}}},
-    "cpu": {"data": {"scenes": list(ALL_SCENES), "steps": 24, "step_deg": 15.0, "n_arms": 4, "width": 160,
+              "method_options": {"ffb6d": {"n_points": 512, "meanshift_iters": 30, "max_votes": 500},
+                                 "densefusion": {"n_points": 128, "crop_size": 48}}},
+    "cpu": {"data": {"scenes": list(ALL_SCENES), "steps": 12, "step_deg": 30.0, "n_arms": 4, "width": 160,
                      "height": 120},
             "train": {"image_size": [96, 128], "batch_size": 4, "lr": 1e-3},
             "epochs": {"hff6dof": 8, "pvnet": 8, "densefusion": 4, "ffb6d": 4},
+            "method_options": {"ffb6d": {"n_points": 2048}, "densefusion": {"n_points": 500, "crop_size": 64}},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
             "profile": {"height": 240, "width": 320, "repeats": 3},
             "select": {"epochs": "best", "every": 2, "max_images": 200},
@@ -506,6 +526,15 @@ class State:
 
 # --------------------------------------------------------------------------------------------
 # the jobs
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and its finished children (data-loader workers): a job's work on
+    a machine shared with other jobs, where its wall time says little."""
+    import resource
+
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
 
 @dataclass
@@ -925,6 +954,7 @@ def _header(cfg: ReproduceConfig, root: Path, state: State) -> list[str]:
            f"simulated: {len(d.scenes)} scenes ({', '.join(d.scenes)}), {d.n_arms} arm positions x {d.steps} steps "
            f"of {d.step_deg:g} deg at {d.width}x{d.height}, oracle labels")
     secs = sum(j.get("seconds", 0.0) for j in state.data["jobs"].values())
+    cpu = sum(j.get("cpu_seconds", 0.0) for j in state.data["jobs"].values())
     ep = ", ".join(f"{m} {getattr(cfg.epochs, m)}" for m in cfg.methods)
     sel = cfg.select
     return [f"# tdof20 reproduce — preset {cfg.preset}", "",
@@ -937,7 +967,8 @@ def _header(cfg: ReproduceConfig, root: Path, state: State) -> list[str]:
             + (f" (every {sel.every} epochs)" if sel.epochs == "best" and sel.every > 1 else "")
             + f"; candidates {json.dumps(cfg.candidates) if cfg.candidates else 'none'}"
             + (f"; at most {sel.max_images} validation images per protocol" if sel.max_images else "") + ".",
-            f"Work so far: {secs:.0f} s over {len(state.data['jobs'])} jobs (DIR/reproduce.json)."]
+            f"Work so far: {secs:.0f} s of wall time, {cpu:.0f} s of CPU, over {len(state.data['jobs'])} jobs "
+            "(DIR/reproduce.json)."]
 
 
 def reproduce(out: str | Path, preset: str | None = None, config: str | Path | dict | None = None,
@@ -1062,9 +1093,10 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
         task = bar.add_task("reproduce", total=len(jobs), completed=len(jobs) - len(todo))
         for j in todo:
             bar.update(task, description=f"reproduce: {j.name}")
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _cpu_seconds()
             info = j.run()
-            state.finish(j.name, time.perf_counter() - t0, stage=j.stage, **info)
+            state.finish(j.name, time.perf_counter() - t0, stage=j.stage, cpu_seconds=round(_cpu_seconds() - c0, 2),
+                         **info)
             bar.advance(task)
 
     # tables (always rebuilt from what is on disk: cheap)
