@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, RawSession, dumps_json, read_json, read_png, read_scene
+from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, RawSession, dumps_json, read_json, read_scene
 from tdof20.formats.bop import model_path, read_model_mesh
 from tdof20.geometry.transforms import invert
 

@@ -338,6 +338,27 @@ def sampled_motion(session: RawSession, cfg: RegistrationConfig, arm: int, steps
     return out, (np.concatenate(clouds) if clouds else np.zeros((0, 3)))
 
 
+def measure_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: float) -> dict | None:
+    """What :func:`check_turntable` measures of one arm position (None when it cannot): the record
+    the arm's registration reuses ({"steps", "n", "d", "sign", "moving", "plane", "pairs"}) and,
+    under "motion", every sampled pair measured for the checks."""
+    info = session.info
+    available = [k for k in range(info.steps) if session.has_frame(cfg.phase, arm, k)]
+    if len(available) < 2:
+        return None
+    sample = [available[i] for i in np.unique(np.linspace(0, len(available) - 1, cfg.plane_frames).round().astype(int))]
+    prior_up = info.T_base_cam(arm)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    plane: dict = {}
+    try:
+        n, d, _ = table_plane(session, cfg, arm, sample, prior_up, plane)
+        motion, moving = sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)
+    except TdofError:
+        return None
+    return {"steps": list(sample), "n": n, "d": d, "sign": sign, "moving": moving, "plane": plane,
+            "pairs": [{k: v for k, v in p.items() if k not in ("moved", "free", "pinned", "reversed")}
+                      for p in motion if p["for_axis"]], "motion": motion}
+
+
 def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, recorded: bool,
                     measured: dict | None = None) -> float:
     """The turning direction and step angle the opaque depth shows, against session.json: returns
@@ -357,28 +378,18 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
     ``measured`` (a dict, filled): per arm position checked, what the registration of that arm
     would measure again — {"steps", "n", "d", "sign", "pairs" (those ``sampled_motion`` returns
     without ``check``), "moving"}; :func:`~tdof20.annotate.registration.register_session` hands
-    it to the arm's registration."""
+    it to the arm's registration. (Measuring the arms on worker processes side by side was tried:
+    no faster on 2 cores, the early stop then saves nothing and each worker opens the session.)"""
     info = session.info
     src = session.path / "session.json"
     votes: list[tuple[str, int, dict]] = []
     for arm in range(info.n_arms):
-        available = [k for k in range(info.steps) if session.has_frame(cfg.phase, arm, k)]
-        if len(available) < 2:
+        m = measure_arm(session, cfg, arm, sign)
+        if m is None:
             continue
-        sample = [available[i] for i in
-                  np.unique(np.linspace(0, len(available) - 1, cfg.plane_frames).round().astype(int))]
-        prior_up = info.T_base_cam(arm)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        plane: dict = {}
-        try:
-            n, d, _ = table_plane(session, cfg, arm, sample, prior_up, plane)
-            motion, moving = sampled_motion(session, cfg, arm, sample, n, d, sign, check=True)
-        except TdofError:
-            continue
+        plane, motion = m["plane"], m.pop("motion")
         if measured is not None:
-            measured[arm] = {"steps": list(sample), "n": n, "d": d, "sign": sign, "moving": moving,
-                             "plane": plane,
-                             "pairs": [{k: v for k, v in p.items() if k not in ("moved", "free", "pinned", "reversed")}
-                                       for p in motion if p["for_axis"]]}
+            measured[arm] = m
         if plane.get("problem"):
             continue       # the motion about a guessed table top says nothing about the direction
         pairs = [p for p in motion if p["moved"] and p["free"][1] >= 0.45 and p["pinned"]]
