@@ -20,7 +20,8 @@ def session(tmp_path_factory):
     return out
 
 
-def test_fused_scene_and_clusters_match_the_truth(session):
+def _truth_frames(session):
+    """(the session, its truth scene, (opaque depth mm, true T_ref_frame) of every frame, T_cam_table of image 0)."""
     s = RawSession.open(session)
     truth = read_scene(session / "truth")
 
@@ -32,11 +33,13 @@ def test_fused_scene_and_clusters_match_the_truth(session):
         return T
 
     ref = T_cam_table(0)
-    frames = []
-    for arm in range(s.info.n_arms):
-        for step in range(s.info.steps):
-            im = arm * s.info.steps + step
-            frames.append((s.load_depth_mm("opaque", arm, step), ref @ invert(T_cam_table(im))))
+    frames = [(s.load_depth_mm("opaque", a, k), ref @ invert(T_cam_table(a * s.info.steps + k)))
+              for a in range(s.info.n_arms) for k in range(s.info.steps)]
+    return s, truth, frames, ref
+
+
+def test_fused_scene_and_clusters_match_the_truth(session):
+    s, truth, frames, ref = _truth_frames(session)
     rec = reconstruct(frames, s.info.camera, axis_point=ref[:3, 3], axis_dir=ref[:3, 2])
     # the table plane passes through the turntable top: the table origin lies on it
     origin_ref = ref[:3, 3]
@@ -62,19 +65,7 @@ def test_a_small_hash_map_grows_to_the_same_fused_scene(session):
 
     from tdof20.annotate.reconstruct import ReconstructionConfig, fuse
 
-    s = RawSession.open(session)
-    truth = read_scene(session / "truth")
-
-    def T_cam_table(im):
-        c = truth.camera[im]
-        T = np.eye(4)
-        T[:3, :3] = np.asarray(c["cam_R_w2c"]).reshape(3, 3)
-        T[:3, 3] = c["cam_t_w2c"]
-        return T
-
-    ref = T_cam_table(0)
-    frames = [(s.load_depth_mm("opaque", a, k), ref @ invert(T_cam_table(a * s.info.steps + k)))
-              for a in range(s.info.n_arms) for k in range(s.info.steps)]
+    s, _, frames, _ = _truth_frames(session)
     small = dataclasses.replace(ReconstructionConfig(), block_count=4)
     big = dataclasses.replace(ReconstructionConfig(), block_count=20000)
     vol = fuse(frames, s.info.camera, small)
