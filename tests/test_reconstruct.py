@@ -65,7 +65,7 @@ def test_a_small_hash_map_grows_to_the_same_fused_scene(session):
 
     from tdof20.annotate.reconstruct import ReconstructionConfig, fuse
 
-    s, _, frames, _ = _truth_frames(session)
+    s, _, frames, ref = _truth_frames(session)
     small = dataclasses.replace(ReconstructionConfig(), block_count=4)
     big = dataclasses.replace(ReconstructionConfig(), block_count=20000)
     vol = fuse(frames, s.info.camera, small)
