@@ -259,3 +259,29 @@ def test_stop_epoch_ends_a_call_early_and_the_run_continues_as_one(dataset, tmp_
     assert parameters_digest(load_run(a)[0]) == parameters_digest(load_run(b)[0])
     with pytest.raises(TdofError, match="stop_epoch must be >= 1"):
         train(dataset, "simple", a, epochs=2, images=images, stop_epoch=0, **opts)
+
+
+def test_poses_no_camera_can_see_are_not_written(runs, dataset, monkeypatch):
+    """A degenerate pose recovery (an untrained network's PnP collapsing to t ~ 0, a NaN, an
+    object behind the camera) gives no row, counted in the summary, so that such a results file
+    scores as misses instead of tripping the scorer's millimetre check."""
+    from tdof20.methods import hff6dof_method
+    from tdof20.methods.predict import impossible_pose
+
+    eye = np.eye(3)
+    assert impossible_pose(eye, [0.1, 0.4, 0.8], 94.3) and impossible_pose(eye, [0, 0, -500], 94.3)
+    assert impossible_pose(eye, [0, 0, np.nan], 94.3) and impossible_pose(np.full((3, 3), np.inf), [0, 0, 500], 94.3)
+    assert not impossible_pose(eye, [10.0, -20.0, 480.0], 94.3) and not impossible_pose(eye, [0, 0, 30.0], None)
+    real = hff6dof_method.predict_poses
+
+    def degenerate(net, batch, cfg, meta):
+        out = real(net, batch, cfg, meta)
+        return [(b, o, s, R, np.array([0.003, 0.43, 0.83]) if k % 2 == 0 else t)
+                for k, (b, o, s, R, t) in enumerate(out)]
+
+    rows, info = predict_rows(runs["trained"], dataset, "simple", device="cpu", num_workers=0, progress=False)
+    monkeypatch.setattr(hff6dof_method, "predict_poses", degenerate)
+    rows2, info2 = predict_rows(runs["trained"], dataset, "simple", device="cpu", num_workers=0, progress=False)
+    assert info["dropped_impossible_poses"] == 0 and info2["dropped_impossible_poses"] >= 1
+    assert len(rows2) + info2["dropped_impossible_poses"] == len(rows)
+    assert all(np.linalg.norm(r[5]) > 1.0 for r in rows2)

@@ -273,13 +273,13 @@ PRESETS: dict[str, dict] = {
             "profile": {"height": 240, "width": 320, "repeats": 3},
             "select": {"epochs": "best", "every": 2, "max_images": 200},
             "candidates": CANDIDATES},
-    "gpu": {"data": {"scenes": list(ALL_SCENES), "steps": 100, "step_deg": 3.6, "n_arms": 4, "width": 640,
+    "gpu": {"data": {"scenes": list(ALL_SCENES), "steps": 60, "step_deg": 6.0, "n_arms": 4, "width": 640,
                      "height": 480},
-            "train": {"image_size": [240, 320], "batch_size": 8, "lr": 1e-3, "num_workers": 4},
-            "epochs": {"hff6dof": 30, "pvnet": 30, "densefusion": 15, "ffb6d": 15},
+            "train": {"image_size": [240, 320], "batch_size": 8, "lr": 1e-3, "num_workers": 8},
+            "epochs": {"hff6dof": 20, "pvnet": 20, "densefusion": 10, "ffb6d": 10},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
             "profile": {"height": 480, "width": 640, "repeats": 20},
-            "select": {"epochs": "best", "every": 5, "max_images": 500},
+            "select": {"epochs": "best", "every": 5, "max_images": 300},
             "candidates": CANDIDATES},
     "full": {"data": {"scenes": list(ALL_SCENES), "steps": 400, "step_deg": 0.9, "n_arms": 4, "width": 640,
                       "height": 480},
@@ -1060,6 +1060,7 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
             opts = options_of(p)
             info = predict_run(Path(kept(p)["kept"]), root, p["split"], csv, cfg, progress, part="test", **opts)
             return {"results": str(csv), "masks": info.get("masks"), "predictions": info.get("predictions"),
+                    "dropped_impossible_poses": info.get("dropped_impossible_poses", 0),
                     "run": kept(p)["kept"], "epoch": kept(p)["kept_epoch"], "options": opts}
 
         def score_job(p=p) -> dict:

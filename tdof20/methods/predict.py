@@ -306,6 +306,18 @@ class NetworkTimer:
 PREDICT_OPTIONS = ("masks", "voting", "min_pixels", "max_points", "n_hyp", "inlier_cos")
 
 
+def impossible_pose(R, t, diameter: float | None) -> bool:
+    """A pose no camera can see: not finite, the object's origin on or behind the camera plane
+    (t_z <= 0), or the camera within half the object's diameter of the model's origin (inside the
+    object's bounding sphere: the models are centred). A degenerate pose recovery (an untrained
+    network's PnP collapsing to t ~ 0) returns such poses; predict writes no row for them (a miss,
+    as a wrong pose would be for ADD(S) and 2D projection) and counts them in its summary."""
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or t[2] <= 0:
+        return True
+    return bool(diameter) and float(np.linalg.norm(t)) < 0.5 * float(diameter)
+
+
 def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: str | Path, *,
             device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str | None = None,
             min_pixels: int | None = None, max_points: int | None = None, n_hyp: int | None = None,
@@ -428,7 +440,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     rows = []
     known = set(ds.obj_ids)
     t_all = 0.0
-    n_img = n_foreign = 0
+    n_img = n_foreign = n_impossible = 0
     timer = NetworkTimer(net, dev)
     try:
         with torch.inference_mode(), progress_bar(bool(progress), unit="img") as bar:
@@ -448,6 +460,9 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                     if int(obj) not in known:  # a class the run has but the dataset does not (the catalog's 20)
                         n_foreign += 1
                         continue
+                    if impossible_pose(R, t, meta.diameters.get(int(obj))):
+                        n_impossible += 1
+                        continue
                     rows.append((int(sids[b]), int(ims[b]), int(obj), float(score), np.asarray(R, np.float64),
                                  np.asarray(t, np.float64), dt / B))
                 n_img += B
@@ -458,7 +473,8 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     info = {"run": str(Path(run_dir).resolve()), "method": method.name, "input": method.inputs,
             "method_config": method.config_to_data(cfg), "dataset": str(dataset_root.resolve()), "split": split,
             "part": part, "images": n_img, "predictions": len(rows), "masks": mask_source,
-            "dropped_objects_not_in_dataset": n_foreign, "depth_mode": depth_mode,
+            "dropped_objects_not_in_dataset": n_foreign, "dropped_impossible_poses": n_impossible,
+            "depth_mode": depth_mode,
             "image_size": list(meta.image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),
             "seed": int(seed),
             "network_ms_per_image": round(1000 * t_net / max(1, n_img), 3),
