@@ -97,6 +97,7 @@ def main() -> None:
     ap.add_argument("--voting", nargs="+", default=list(VOTING), choices=VOTING)
     ap.add_argument("--part", default="val", choices=["val", "test"],
                     help="where runs are compared (val; test only to report a choice made on val)")
+    ap.add_argument("--seed", type=int, default=0, help="the trainings' seed (initial weights, batch order)")
     ap.add_argument("--device", default="auto")
     a = ap.parse_args()
     combos = []
@@ -117,14 +118,15 @@ def main() -> None:
     results: dict = {"options": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
                      "part": a.part, "images": n_images, "runs": {}}
     for mode, origin in combos:
-        name = f"{mode}_{origin}"
+        name = f"{mode}_{origin}" + (f"_seed{a.seed}" if a.seed else "")
         run = a.out / "runs" / name
         t0 = time.perf_counter()
         train(root, "simple", run, image_size=tuple(a.image_size), batch_size=a.batch_size, epochs=a.epochs,
               lr=a.lr, depth_mode=mode, method_config={"vector_origin": origin}, device=a.device, num_workers=1,
-              progress=False, part=train_part, max_steps=a.max_steps)
+              progress=False, part=train_part, max_steps=a.max_steps, seed=a.seed)
         hist = json.loads((run / "history.json").read_text())
-        entry = {"depth_mode": mode, "vector_origin": origin, "train_s": round(time.perf_counter() - t0, 1),
+        entry = {"depth_mode": mode, "vector_origin": origin, "seed": a.seed,
+                 "train_s": round(time.perf_counter() - t0, 1),
                  "epochs": hist["epochs"][-1] if hist["epochs"] else None,
                  "seg_iou": round(segmentation_iou(run, root, "simple", device=a.device,
                                                    images=part_images(root, "simple", a.part))["mean"], 4)}

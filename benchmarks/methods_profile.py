@@ -10,8 +10,8 @@ The networks are untrained (random weights): each pose recovery runs on its own 
 
 How long a ``tdof20 reproduce`` preset takes, estimated (issue 15 part 2):
 
-    python benchmarks/methods_profile.py --estimate cpu [--device cpu] [--json OUT]
-        [--gpu-tflops 50 150] [--gpu-workers 8]
+    python benchmarks/methods_profile.py --estimate cpu [--json OUT] [--measure-batch 2]
+        [--gpu-tflops 50 150] [--gpu-workers N] [--units EARLIER.json]
 
 measures, on this device, at the preset's sizes and with its method options: a few optimiser
 steps of each method at its training image size and batch (train_speed), the prediction of one
@@ -23,7 +23,8 @@ prediction, frames). For a GPU that is not here, ``--gpu-tflops`` adds an estima
 measured multiply-adds: a training step = 3 x forward FLOPs (2 per multiply-add) x batch at that
 many effective TFLOPS, or the input pipeline (the measured CPU transform x batch / --gpu-workers)
 if slower; a prediction likewise with 1 x forward (pose recovery at the CPU's measured time). Those
-are assumptions, stated as such in the output.
+are assumptions, stated as such in the output. ``--units`` reuses the unit costs of an earlier
+``--json`` (e.g. after changing a preset's epochs or data, not its sizes).
 """
 
 from __future__ import annotations
@@ -132,9 +133,13 @@ def unit_costs(name: str, cfg, image_size, batch_size: int, steps: int = 2, repe
 TWO_CORE_SPEEDUP = 1.7
 
 
-def estimate_preset(preset: str, tflops: list[float], workers: int, measure_batch: int | None = None) -> dict:
+def estimate_preset(preset: str, tflops: list[float], workers: int | None = None, measure_batch: int | None = None,
+                    units_from: str | None = None) -> dict:
     """Unit costs measured on this CPU with one torch thread (CPU time, robust to other jobs), multiplied
-    out by reproduce.estimate; a 2-core wall estimate; and GPU estimates from assumed throughput."""
+    out by reproduce.estimate; a 2-core wall estimate; and GPU estimates from assumed throughput
+    (``workers``: data-loader processes, default the preset's train.num_workers). ``units_from``: a
+    JSON this wrote before (the same image size, batch and method options): its unit costs are
+    reused instead of measured again."""
     import os
 
     from tdof20.benchmark.reproduce import estimate, make_config
@@ -144,9 +149,16 @@ def estimate_preset(preset: str, tflops: list[float], workers: int, measure_batc
     cfg = make_config(preset)
     h, w = cfg.train.image_size
     bs = cfg.train.batch_size
+    workers = int(workers or cfg.train.num_workers)
     load0 = os.getloadavg()
     units, prof_s = {}, 0.0
-    for name in cfg.methods:
+    if units_from:
+        old = json.loads(open(units_from).read())
+        if old["train"] != {"image_size": [h, w], "batch_size": bs}:
+            raise SystemExit(f"{units_from}: measured at {old['train']}, the preset trains at {[h, w]} x {bs}")
+        units = old["units"]
+        prof_s = old["estimate_cpu_s"]["profile_s"]
+    for name in ([] if units_from else cfg.methods):
         mcfg = get_method(name).config_from(cfg.method_options.get(name, {}), "")
         t0 = time.perf_counter()
         units[name] = unit_costs(name, mcfg, (h, w), bs, steps=1 if h * w > 200_000 else 2,
@@ -157,7 +169,7 @@ def estimate_preset(preset: str, tflops: list[float], workers: int, measure_batc
             units[name]["profile_predict_ms"] = pu["predict_ms"]
             prof_s += (cfg.profile.repeats + 2) * pu["predict_ms"] / 1000
         print(f"[{name}: {units[name]} measured in {time.perf_counter() - t0:.0f} s]", flush=True)
-    frame_s, n_frames = _frame_seconds(cfg)
+    frame_s, n_frames = (old["frame_s"], old["frames_measured"]) if units_from else _frame_seconds(cfg)
     step_s = {k: u["step_ms"] / 1000 for k, u in units.items()}
     image_s = {k: u["predict_ms"] / 1000 for k, u in units.items()}
     est = estimate(cfg, step_s, image_s, frame_s, prof_s)
@@ -203,12 +215,15 @@ def main() -> None:
                     help="estimate how long tdof20 reproduce --preset PRESET takes (see the module doc)")
     ap.add_argument("--gpu-tflops", type=float, nargs="*", default=[50.0, 150.0],
                     help="with --estimate: effective TFLOPS assumed for a GPU estimate (none: skip)")
-    ap.add_argument("--gpu-workers", type=int, default=8, help="with --estimate: data-loader workers assumed on a GPU")
+    ap.add_argument("--gpu-workers", type=int, default=None,
+                    help="with --estimate: data-loader workers assumed on a GPU (default: the preset's num_workers)")
+    ap.add_argument("--units", default=None, metavar="JSON",
+                    help="with --estimate: reuse the unit costs of an earlier --json instead of measuring them")
     ap.add_argument("--measure-batch", type=int, default=None,
                     help="with --estimate: measure a training step at this many images and scale to the preset's batch")
     a = ap.parse_args()
     if a.estimate:
-        r = estimate_preset(a.estimate, a.gpu_tflops, a.gpu_workers, a.measure_batch)
+        r = estimate_preset(a.estimate, a.gpu_tflops, a.gpu_workers, a.measure_batch, a.units)
         e = r["estimate_cpu_s"]
         print(f"preset {a.estimate}, measured with one torch thread as CPU time (load {r['load_before'][0]:.1f} -> "
               f"{r['load_after'][0]:.1f}): {_hours(e['total_s'])} of CPU = dataset {_hours(e['dataset_s'])} "
