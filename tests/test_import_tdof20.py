@@ -308,3 +308,46 @@ def test_imported_release_round_trip_stats_train_predict_score(tmp_path):
     assert json.loads((tmp_path / "res_info.json").read_text())["images"] == lists["simple_test"]
     sc = score(res, out, "simple", metrics="add,proj")
     assert sc["all"]["n"] == lists["simple_test"]  # one target per single-object test frame
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_reproduce_on_an_imported_release(tmp_path):
+    """`tdof20 reproduce --dataset ROOT` on a release written from the README alone and imported:
+    validation arcs carved from the released train lists, every method trained, predicted and
+    scored on both protocols, every released object a row of Tables 1-2; the given dataset is only
+    read (not a byte of it changes)."""
+    import hashlib
+
+    from tdof20.benchmark.reproduce import reproduce
+    from tdof20.benchmark.validation import part_images
+
+    write_tdof20_release(tmp_path / "TDoF20", classes=("cube_136", "handle_cup_280"), multi=("00", "02"),
+                         frames_per_scene=16)  # 4 per arm position: a validation arc of 1
+    ds = tmp_path / "ds"
+    import_tdof20(tmp_path / "TDoF20", ds, show_progress=False)
+
+    def digest():
+        return {p.relative_to(ds).as_posix(): hashlib.sha1(p.read_bytes()).hexdigest()
+                for p in sorted(ds.rglob("*")) if p.is_file()}
+
+    before = digest()
+    for split in ("simple", "hard"):
+        val, fit = part_images(ds, split, "val"), part_images(ds, split, "train-val")
+        assert val and fit and not set(val) & set(fit)
+        assert sorted(val + fit) == sorted(part_images(ds, split, "train"))
+        assert not set(val) & set(part_images(ds, split, "test"))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('preset = "smoke"\ndevice = "cpu"\nmethods = ["pvnet", "hff6dof"]\n'
+                   '[train]\nimage_size = [32, 48]\nbatch_size = 4\nmax_steps = 1\nnum_workers = 0\n'
+                   '[ablations]\nfuse_stages = []\nsegmentation = false\n[profile]\nenabled = false\n')
+    md = reproduce(tmp_path / "out", config=cfg, dataset=ds, progress=False)
+    tables = json.loads((md.parent / "tables.json").read_text())
+    text = md.read_text()
+    assert f"the given dataset, imported from the TDoF20 release at {tmp_path / 'TDoF20'}: 4 scenes, 2 objects" in text
+    for name in ("cube_136", "handle_cup_280"):
+        assert f"| {name} |" in text or f"| **{name}** \\* |" in text
+    assert "**handle_cup_280** \\*" in text  # the asymmetric one marked
+    cols = {(c["label"], c["split"]) for t in ("table1", "table2") for c in tables[t]["columns"] if c["present"]}
+    for method in ("PVNet", "HFF6DoF (bearing + PnP)", "HFF6DoF (3D voting + LSQ)"):
+        assert {(method, "simple"), (method, "hard")} <= cols
+    assert digest() == before

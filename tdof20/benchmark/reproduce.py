@@ -948,9 +948,25 @@ def choices(cfg: ReproduceConfig, state: State) -> list[dict]:
     return rows
 
 
+def _given_source(root: Path) -> str:
+    """What a given dataset is, from its dataset_info.json: e.g. 'the given dataset, imported from
+    the TDoF20 release at /data/TDoF20: 5 scenes, 3 objects'."""
+    from tdof20.formats.io import read_json
+
+    try:
+        info = read_json(root / "dataset_info.json")
+    except TdofError:
+        return "the given dataset"
+    origin = {"tdof20-release": "imported from the TDoF20 release"}
+    src = origin.get(info.get("source"), "")
+    src += f" at {info['source_path']}" if src and info.get("source_path") else ""
+    counts = f"{len(info.get('scenes') or {})} scenes, {len(info.get('objects') or {})} objects"
+    return f"the given dataset, {src}: {counts}" if src else f"the given dataset: {counts}"
+
+
 def _header(cfg: ReproduceConfig, root: Path, state: State) -> list[str]:
     d = cfg.data
-    src = (f"the given dataset {cfg.dataset}" if cfg.dataset else
+    src = (_given_source(root) if cfg.dataset else
            f"simulated: {len(d.scenes)} scenes ({', '.join(d.scenes)}), {d.n_arms} arm positions x {d.steps} steps "
            f"of {d.step_deg:g} deg at {d.width}x{d.height}, oracle labels")
     secs = sum(j.get("seconds", 0.0) for j in state.data["jobs"].values())
