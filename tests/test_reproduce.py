@@ -264,6 +264,15 @@ def test_config_errors_and_presets(tmp_path):
     assert make_config("smoke").candidates == {} and make_config("smoke").select.epochs == "best"
 
 
+def test_digest_ignores_the_simulated_scenes_with_a_given_dataset(tmp_path):
+    """With --dataset the [data] table is not used: changing it does not refuse a resume; without a
+    dataset it does."""
+    a, b = {"data": {"steps": 6}}, {"data": {"steps": 12}}
+    assert R.config_digest(make_config("smoke", a, tmp_path)) == R.config_digest(make_config("smoke", b, tmp_path))
+    assert R.config_digest(make_config("smoke", a)) != R.config_digest(make_config("smoke", b))
+    assert R.config_digest(make_config("smoke", a, tmp_path)) != R.config_digest(make_config("smoke", a))
+
+
 def test_cli_command(tmp_path):
     from typer.testing import CliRunner
 

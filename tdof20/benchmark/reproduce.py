@@ -382,9 +382,12 @@ def config_data(cfg: ReproduceConfig) -> dict:
 
 
 def config_digest(cfg: ReproduceConfig) -> str:
-    """sha256 of the config's canonical JSON (the device left out: it changes no result's meaning)."""
+    """sha256 of the config's canonical JSON (the device left out: it changes no result's meaning;
+    with a given dataset, the simulated scenes' settings too: they are not used)."""
     d = config_data(cfg)
     d.pop("device", None)
+    if d.get("dataset"):
+        d.pop("data", None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
