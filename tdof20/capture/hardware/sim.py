@@ -65,8 +65,8 @@ class SimWorld:
         self.protective_stop = False
 
 
-class SimRobot(Robot):
-    name = "sim robot"
+class _OnWorld:
+    """A simulated device: it acts on the shared :class:`SimWorld`; nothing to connect or close."""
 
     def __init__(self, world: SimWorld):
         self.world = world
@@ -76,6 +76,10 @@ class SimRobot(Robot):
 
     def close(self) -> None:
         pass
+
+
+class SimRobot(_OnWorld, Robot):
+    name = "sim robot"
 
     def check_safety(self) -> None:
         if self.world.protective_stop:
@@ -99,17 +103,8 @@ class SimRobot(Robot):
         pass
 
 
-class SimTurntable(Turntable):
+class SimTurntable(_OnWorld, Turntable):
     name = "sim turntable"
-
-    def __init__(self, world: SimWorld):
-        self.world = world
-
-    def connect(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
     def home(self, timeout_s: float) -> None:
         self.world.angle = 0.0
@@ -124,17 +119,8 @@ class SimTurntable(Turntable):
         return self.world.angle
 
 
-class SimCamera(RGBDCamera):
+class SimCamera(_OnWorld, RGBDCamera):
     name = "sim camera"
-
-    def __init__(self, world: SimWorld):
-        self.world = world
-
-    def connect(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
     def intrinsics(self) -> dict:
         return self.world.renderer.camera.to_dict()
