@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
+import click
 import typer
 from rich.table import Table
 
@@ -28,6 +29,13 @@ class _AnnotateGroup(typer.core.TyperGroup):
         if args and args[0] not in self.commands and not args[0].startswith("-"):
             args = ["run", *args]
         return super().parse_args(ctx, args)
+
+    def format_help(self, ctx, formatter):
+        """The group's help, then the pipeline's own usage and options (its command is hidden)."""
+        super().format_help(ctx, formatter)
+        run = self.commands["run"]
+        with click.Context(run, info_name=ctx.info_name, parent=ctx.parent) as sub:
+            run.format_help(sub, formatter)
 
 
 annotate_app = typer.Typer(cls=_AnnotateGroup, no_args_is_help=True,

@@ -37,6 +37,17 @@ def test_help_lists_only_built_commands():
                         "reproduce"}
 
 
+def test_annotate_help_shows_the_pipeline_options():
+    """`tdof20 annotate --help`: the evaluate subcommand and the pipeline's own options (its command
+    is hidden so that `tdof20 annotate RAW --out SCENE` reads naturally)."""
+    res = run("annotate", "--help")
+    assert res.returncode == 0
+    for opt in ("evaluate", "--out", "--models", "--stages", "--config", "--executor", "--ray-address",
+                "--workers", "--force"):
+        assert opt in res.stdout, opt
+    assert "│ run " not in res.stdout
+
+
 def test_objects_list_and_export(tmp_path):
     res = run("objects", "list")
     assert res.returncode == 0 and "cube_136" in res.stdout and "whisky_cup_270" in res.stdout
