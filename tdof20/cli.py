@@ -705,7 +705,7 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
                                                        "\\[the TOML's, else smoke]"),
                   config: Optional[Path] = typer.Option(None, "--config", help="TOML over the preset (methods, "
                                                         "\\[data], \\[train], \\[epochs], \\[ablations], \\[profile], "
-                                                        "\\[select], \\[candidates.METHOD])"),
+                                                        "\\[select], \\[method_options.METHOD], \\[candidates.METHOD])"),
                   dataset: Optional[Path] = typer.Option(None, "--dataset", help="a dataset root to use instead of "
                                                          "simulating one (e.g. an imported TDoF20)")) -> None:
     """The paper's Tables 1-3 and both ablations with one command: dataset, train every method on
