@@ -8,6 +8,7 @@ from typing import Optional
 
 import click
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tdof20.errors import TdofError
@@ -184,7 +185,7 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
     resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     summary = run_capture(cfg, out, yes=yes, resume_command=resume)
     for line in summary.lines():
-        console.print(line)
+        console.print(line, markup=False)
     console.print(f"session in {out} (log: {out / 'capture.log'})")
 
 
@@ -197,7 +198,7 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
     problems = verify_session(session)
     if problems:
         for p in problems[:200]:
-            out_console.print(p, highlight=False, soft_wrap=True)
+            out_console.print(p, highlight=False, soft_wrap=True, markup=False)
         if len(problems) > 200:
             out_console.print(f"... and {len(problems) - 200} more")
         console.print(f"[bold red]{len(problems)} problem{'s' if len(problems) != 1 else ''}[/bold red] in {session}")
@@ -408,7 +409,7 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
              *(f"im_id: {r}" for r in s["im_id_rule"]), *(f"symmetry: {x}" for x in s["symmetries"]),
              *(f"note: {x}" for x in s["notes"])]
     for ln in lines:
-        out_console.print(ln, highlight=False)
+        out_console.print(ln, highlight=False, markup=False)
     if s["written"]:
         console.print(f"{'resumed and finished' if s.get('resumed') else 'imported'} into {s['out']}")
     else:
@@ -473,12 +474,12 @@ def annotate_run(raw: list[Path] = typer.Argument(..., help="raw session folder(
     cfg = cfg.with_label_options(executor=executor, ray_address=ray_address, workers=workers)
     if len(raw) == 1:
         summary = annotate(raw[0], out, models_dir=models, stages=stages, cfg=cfg, force=force)
-        out_console.print(summary_text(summary), highlight=False)
+        out_console.print(summary_text(summary), highlight=False, markup=False)
         return
     from tdof20.annotate.batch import SUMMARY, annotate_many, batch_text
 
     batch = annotate_many(raw, out, models_dir=models, stages=stages, cfg=cfg, force=force)
-    out_console.print(batch_text(batch), highlight=False, soft_wrap=True)
+    out_console.print(batch_text(batch), highlight=False, soft_wrap=True, markup=False)
     if batch["failed"]:
         raise TdofError(f"{len(batch['failed'])} of {len(batch['scenes'])} scenes failed: {', '.join(batch['failed'])} "
                         f"({'the others finished; ' if len(batch['failed']) < len(batch['scenes']) else ''}"
@@ -533,12 +534,12 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               batch_size: Optional[int] = typer.Option(None, help="images per optimiser step (per process) [8]"),
               epochs: Optional[int] = typer.Option(None, help="passes over the training images, in all [20]"),
               lr: Optional[float] = typer.Option(None, help="peak learning rate (AdamW) [1e-3]"),
-              lr_schedule: Optional[str] = typer.Option(None, help="cosine or step [cosine]"),
+              lr_schedule: Optional[str] = typer.Option(None, help="cosine or step \\[cosine]"),
               depth_mode: Optional[str] = typer.Option(None, help="input depth of an RGB-D method: raw, filled or "
-                                                       "restored (privileged) [filled]"),
+                                                       "restored (privileged) \\[filled]"),
               fuse_stages: Optional[int] = typer.Option(None, help="hff6dof: encoder stages fused (1-5) [3]"),
               seg_head: Optional[bool] = typer.Option(None, "--seg-head/--no-seg-head",
-                                                      help="hff6dof: the segmentation head [on]"),
+                                                      help="hff6dof: the segmentation head \\[on]"),
               device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
               amp: Optional[bool] = typer.Option(None, "--amp/--no-amp", help="mixed precision (default: on CUDA)"),
               workers: Optional[int] = typer.Option(None, help="data-loading worker processes [2]"),
@@ -591,9 +592,9 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train M
                 batch_size: int = typer.Option(1, help="images per forward pass"),
                 workers: int = typer.Option(2, help="data-loading worker processes"),
                 masks: Optional[str] = typer.Option(None, help="hff6dof: auto, network or gt (oracle masks; not a "
-                                                    "valid submission) [the run's: auto]"),
+                                                    "valid submission) \\[the run's: auto]"),
                 voting: Optional[str] = typer.Option(None, help="hff6dof: bearing (every pixel) or 3d (pixels with "
-                                                     "depth) [the run's: bearing]"),
+                                                     "depth) \\[the run's: bearing]"),
                 part: str = typer.Option("test", "--part", help="test, or val: the validation part of the split's "
                                          "train part (where choices are made)"),
                 seed: int = SEED) -> None:
@@ -631,7 +632,7 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
         if split is None or targets is not None:
             raise TdofError("--part val scores against the validation targets of --split: give --split, not --targets")
         split, targets = None, write_val_targets(dataset, split)
-    out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics), highlight=False)
+    out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics), highlight=False, markup=False)
 
 
 @benchmark_app.command("profile")
@@ -673,7 +674,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          methods: str = typer.Option("hff6dof,pvnet", help="comma-separated registered methods trained, "
                                      "predicted and scored side by side"),
          image_size: str = typer.Option("60x80", help="HxW of the short training"),
-         epochs: Optional[int] = typer.Option(None, help="training epochs of every method [default: hff6dof 5, "
+         epochs: Optional[int] = typer.Option(None, help="training epochs of every method \\[default: hff6dof 5, "
                                               "pvnet 15]"),
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
@@ -721,7 +722,7 @@ def main() -> None:
     try:
         app()
     except TdofError as e:
-        console.print(f"[bold red]error:[/bold red] {e}", highlight=False, soft_wrap=True)
+        console.print(f"[bold red]error:[/bold red] {escape(str(e))}", highlight=False, soft_wrap=True)
         sys.exit(2)
     except KeyboardInterrupt:
         console.print("[bold red]interrupted[/bold red]")
@@ -730,7 +731,8 @@ def main() -> None:
         # the last net: a file the stages did not check themselves (a full disk, a folder that
         # turned read-only mid-run) is still one line naming it, not a traceback
         where = f"{e.filename}: " if e.filename else ""
-        console.print(f"[bold red]error:[/bold red] {where}{e.strerror or e}", highlight=False, soft_wrap=True)
+        console.print(f"[bold red]error:[/bold red] {escape(where + str(e.strerror or e))}", highlight=False,
+                      soft_wrap=True)
         sys.exit(2)
 
 

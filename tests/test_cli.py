@@ -48,6 +48,21 @@ def test_annotate_help_shows_the_pipeline_options():
     assert "│ run " not in res.stdout
 
 
+def test_error_keeps_brackets(tmp_path):
+    """An error naming config tables ([sim], [turntable]) prints them: rich markup would eat them."""
+    one_line_error(run("capture", "run", tmp_path / "c.toml", "--clutter", "cabinet", "--out", tmp_path / "s"),
+                   "[sim] table", "[turntable] direction")
+
+
+def test_help_keeps_defaults_in_brackets():
+    """rich markup would eat a bracketed default such as [cosine] as a style tag: they are escaped."""
+    train, predict = run("train", "--help").stdout, run("predict", "--help").stdout
+    for text in ("[cosine]", "[filled]", "[on]"):
+        assert text in train, text
+    for text in ("[the run's: auto]", "[the run's: bearing]"):
+        assert text in predict, text
+
+
 def test_objects_list_and_export(tmp_path):
     res = run("objects", "list")
     assert res.returncode == 0 and "cube_136" in res.stdout and "whisky_cup_270" in res.stdout

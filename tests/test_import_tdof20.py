@@ -192,6 +192,36 @@ def test_bad_release_one_line_naming_the_file(tmp_path, variant, needle):
     assert list(out.iterdir()) == []
 
 
+def test_rgb_masks_of_equal_channels_are_read(tmp_path):
+    """docs/tdof20_release.md: a mask may be an RGB(A) PNG whose channels are equal (an image editor's
+    save): the same labels as grey masks; one with unequal channels is a one-line error naming it."""
+    from PIL import Image
+
+    write_tdof20_release(tmp_path / "src", **SMALL)
+    masks = sorted((tmp_path / "src" / "single_data" / "goblet_180" / "mask").glob("*.png"))
+    grey = [np.asarray(Image.open(m)) for m in masks]
+    for m, g in zip(masks, grey):
+        mode = "RGBA" if m == masks[0] else "RGB"
+        Image.fromarray(np.stack([g] * len(mode), axis=-1).astype(np.uint8), mode).save(m)
+    ref = tmp_path / "ref"
+    write_tdof20_release(tmp_path / "src_grey", **SMALL)
+    import_tdof20(tmp_path / "src_grey", ref, show_progress=False)
+    out = tmp_path / "out"
+    import_tdof20(tmp_path / "src", out, show_progress=False)
+    visib = sorted((ref / "scenes").rglob("mask_visib/*.png"))
+    assert len(visib) >= len(masks)
+    for a in visib:
+        np.testing.assert_array_equal(read_png(out / a.relative_to(ref)), read_png(a))
+    rgb = np.stack([grey[1]] * 3, axis=-1).astype(np.uint8)
+    rgb[0, 0, 1] = 7
+    Image.fromarray(rgb, "RGB").save(masks[1])
+    with pytest.raises(TdofError) as e:
+        import_tdof20(tmp_path / "src", tmp_path / "out2", show_progress=False)
+    _one_line(e, masks[1].name, "unequal channels")
+    # found while importing: the import stays unfinished (its marker, no dataset_info.json), not a dataset
+    assert (tmp_path / "out2" / importer.MARKER).exists() and not (tmp_path / "out2" / "dataset_info.json").exists()
+
+
 def test_cli_error_is_one_line(tmp_path):
     write_tdof20_release(tmp_path / "src", **SMALL, pkl_drop_keys=("poses",))
     res = subprocess.run([sys.executable, "-m", "tdof20.cli", "dataset", "import-tdof20", str(tmp_path / "src"),

@@ -112,9 +112,9 @@ def _check_images(rel: Release, frames: dict[str, list[int]], size: tuple[int, i
                 data = read_bytes(q, "mask file", limit=33)
                 hdr = png_header(q, "any", data)
                 bits, colour = data[24], data[25]
-                if colour not in (0, 3) or bits > 16:
-                    raise TdofError(f"the mask must be a grey or palette PNG of class ids, found colour type {colour} "
-                                    f"with {bits} bits", q)
+                if colour not in (0, 2, 3, 6) or bits > 16:  # grey, RGB(A) of equal channels, palette
+                    raise TdofError(f"the mask must be a grey, palette or RGB PNG of class ids, found colour type "
+                                    f"{colour} with {bits} bits", q)
                 checks.append((q, hdr))
                 for path, hw in checks:
                     if ref is None:

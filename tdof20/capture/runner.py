@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable, Iterator, TypeVar
 
 import numpy as np
+from rich.markup import escape
 
 from tdof20.capture.config import CaptureConfig
 from tdof20.capture.hardware.interfaces import HardwareError, SafetyStop
@@ -165,7 +166,7 @@ class _Runner:
                 self.log.warning("%s: %s", what, e)
                 if self.yes:
                     raise
-                console.print(f"[bold yellow]paused:[/bold yellow] {e}")
+                console.print(f"[bold yellow]paused:[/bold yellow] {escape(str(e))}")
                 self.prompt("Clear the stop on the teach pendant, then press Enter to go on (Ctrl-C stops) ")
                 self.rig.robot.check_safety()
                 self.summary.warnings.append(f"safety stop during {what}, cleared by the operator")

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from tdof20.benchmark.splits import HARD_TEST_MULTI, _hard_train_multi
 from tdof20.errors import TdofError
 from tdof20.methods.hff6dof import fill_depth_holes, geometry_map
 from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED, N_KEYPOINTS, surface_keypoints
@@ -101,8 +102,8 @@ def check_depth_mode(mode: str) -> str:
 SPLIT_PART_SCENES = {
     ("simple", "train"): "the single-object scenes' frames outside the test arcs",
     ("simple", "test"): "one arc of turntable steps per arm position of the single-object scenes",
-    ("hard", "train"): "the single-object scenes and multi-object scenes 01, 03-07, 12-14, 16-20",
-    ("hard", "test"): "multi-object scenes 02, 08, 09, 10, 11 and 15",
+    ("hard", "train"): f"the single-object scenes and multi-object scenes {_hard_train_multi()}",
+    ("hard", "test"): "multi-object scenes " + ", ".join(f"{m:02d}" for m in HARD_TEST_MULTI),
 }
 
 
