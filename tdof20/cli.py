@@ -597,13 +597,16 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train M
                                                      "depth) \\[the run's: bearing]"),
                 part: str = typer.Option("test", "--part", help="test, or val: the validation part of the split's "
                                          "train part (where choices are made)"),
+                cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
+                                                         "lacks is rendered (default ROOT/.cache; for a read-only "
+                                                         "dataset)"),
                 seed: int = SEED) -> None:
     """Estimate the poses of a split's test images with a run of any method; writes the results CSV with
     per-image times and, beside it, <stem>_info.json (method, its config, depth mode, timings)."""
     from tdof20.methods.predict import predict
 
     predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, masks=masks,
-            voting=voting, seed=seed, part=part)
+            voting=voting, seed=seed, part=part, cache_dir=cache_dir)
 
 
 # ----------------------------------------------------------------------------------- benchmark

@@ -192,6 +192,23 @@ def test_train_predict_score_on_a_bop_dataset_with_objects_1_5_30(bop, tmp_path)
     assert net is not None
 
 
+def test_predict_renders_restored_depth_into_a_cache_folder(bop, tmp_path):
+    """predict(cache_dir=) (`tdof20 predict --cache-dir`), as train: a run on restored depth predicts
+    a dataset without it, rendering into the given folder, not into ROOT/.cache."""
+    from tdof20.methods.predict import predict
+    from tdof20.methods.train import train
+
+    root, cache = bop["root"], tmp_path / "cache"
+    run = train(root, "train_pbr", tmp_path / "run", image_size=(32, 48), batch_size=2, max_steps=0,
+                depth_mode="restored", num_workers=0, device="cpu", progress=False, cache_dir=cache)
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    out = predict(run, root, "test", tmp_path / "res.csv", device="cpu", num_workers=0, masks="gt", progress=False,
+                  cache_dir=cache)
+    assert json.loads((tmp_path / "res_info.json").read_text())["depth_mode"] == "restored"
+    assert out.is_file() and sorted((cache / "depth_restored" / "test").rglob("*.png"))
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
+
+
 def test_score_command_names_the_bop_objects(bop, tmp_path, capsys):
     from tdof20.formats.dataset import open_dataset as od
 

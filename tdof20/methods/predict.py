@@ -322,7 +322,8 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
             device: str = "auto", batch_size: int = 1, num_workers: int = 2, masks: str | None = None,
             min_pixels: int | None = None, max_points: int | None = None, n_hyp: int | None = None,
             inlier_cos: float | None = None, voting: str | None = None, amp: bool | None = None, seed: int = 0,
-            progress: bool = True, method_options: dict | None = None, part: str = "test") -> Path:
+            progress: bool = True, method_options: dict | None = None, part: str = "test",
+            cache_dir: str | Path | None = None) -> Path:
     """Estimate the poses of every test image of ``split`` (``part`` 'val': of its validation part,
     :mod:`tdof20.benchmark.validation`, where choices are made) with the run in ``run_dir`` (any method)
     and write the BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its
@@ -335,6 +336,8 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     are the dataset's visible masks (an oracle segmentation, the only choice for a run trained
     without the segmentation head; not a valid submission). amp: mixed precision for the network
     (None = on for CUDA). batch_size: images per forward pass. seed: the pose recovery's generator.
+    cache_dir: where restored depth the dataset lacks is rendered (default ROOT/.cache; for a
+    read-only dataset folder), as for training.
     """
     from tdof20.benchmark.results import write_results_csv
 
@@ -344,7 +347,7 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     rows, info = predict_rows(run_dir, dataset_root, split, device=device, batch_size=batch_size,
                               num_workers=num_workers, masks=masks, min_pixels=min_pixels, max_points=max_points,
                               n_hyp=n_hyp, inlier_cos=inlier_cos, voting=voting, amp=amp, seed=seed,
-                              progress=progress, method_options=method_options, part=part)
+                              progress=progress, method_options=method_options, part=part, cache_dir=cache_dir)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_csv, rows)
     write_json(info_path(out_csv), info)
@@ -380,7 +383,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                  max_points: int | None = None, n_hyp: int | None = None, inlier_cos: float | None = None,
                  voting: str | None = None, amp: bool | None = None, seed: int = 0, progress: bool = True,
                  images: list[tuple[int, int]] | None = None, method_options: dict | None = None,
-                 part: str = "test") -> tuple[list[tuple], dict]:
+                 part: str = "test", cache_dir: str | Path | None = None) -> tuple[list[tuple], dict]:
     """What :func:`predict` writes, without writing: (rows (scene_id, im_id, obj_id, score, R (3,3),
     t (3,) mm, time s), summary dict). ``part``: 'test' or 'val' (the validation part of the
     split's train part); ``images`` overrides both."""
@@ -429,9 +432,10 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         net = net.to(memory_format=torch.channels_last)
     depth_mode = depth_mode_of(cfg)
     if depth_mode == "restored":  # rendered once (cached) where the dataset has none
-        open_dataset(dataset_root, bop_split).render_restored(images, bop_split, show_progress=progress)
+        open_dataset(dataset_root, bop_split, cache_dir=cache_dir).render_restored(images, bop_split,
+                                                                                    show_progress=progress)
     data = TransformedDataset(SceneImages(dataset_root, images, labels=labels, restored=depth_mode == "restored",
-                                          split=bop_split),
+                                          split=bop_split, cache_dir=cache_dir),
                               method.transform(cfg, meta, train=False))
     loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
                                          num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
