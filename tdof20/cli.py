@@ -186,7 +186,7 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
     summary = run_capture(cfg, out, yes=yes, resume_command=resume)
     for line in summary.lines():
         console.print(line, markup=False)
-    console.print(f"session in {out} (log: {out / 'capture.log'})")
+    console.print(f"session in {out} (log: {out / 'capture.log'})", markup=False)
 
 
 @capture_app.command("verify")
@@ -200,10 +200,10 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
         for p in problems[:200]:
             out_console.print(p, highlight=False, soft_wrap=True, markup=False)
         if len(problems) > 200:
-            out_console.print(f"... and {len(problems) - 200} more")
-        console.print(f"[bold red]{len(problems)} problem{'s' if len(problems) != 1 else ''}[/bold red] in {session}")
+            out_console.print(f"... and {len(problems) - 200} more", markup=False)
+        console.print(f"[bold red]{len(problems)} problem{'s' if len(problems) != 1 else ''}[/bold red] in {escape(str(session))}")
         raise typer.Exit(1)
-    console.print(f"[green]ok[/green]: {session} is complete and every file matches its checksum")
+    console.print(f"[green]ok[/green]: {escape(str(session))} is complete and every file matches its checksum")
 
 
 
@@ -235,7 +235,7 @@ def objects_export(out: Path = typer.Argument(..., help="folder for the BOP mode
     from tdof20.objects import export_models
 
     path = export_models(out, _ids(ids))
-    console.print(f"wrote BOP models to {path}")
+    console.print(f"wrote BOP models to {path}", markup=False)
 
 
 @objects_app.command("picture")
@@ -246,7 +246,7 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
     from tdof20.sim.gallery import catalog_picture
 
     write_png(out, catalog_picture(tile))
-    console.print(f"wrote {out}")
+    console.print(f"wrote {out}", markup=False)
 
 
 # ----------------------------------------------------------------------------------- sim
@@ -287,7 +287,7 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
 
     renderer = build_rig(sim_config(scene, width=width, height=height, seed=seed)).world.renderer
     sheet = render_frames(renderer, out, arm, angle_list)
-    console.print(f"wrote frames and {sheet}")
+    console.print(f"wrote frames and {sheet}", markup=False)
 
 
 @sim_app.command("label")
@@ -298,7 +298,7 @@ def sim_label(session: Path = typer.Argument(..., help="simulated raw session (w
     from tdof20.sim.truth import oracle_scene
 
     oracle_scene(session, out)
-    console.print(f"oracle-labelled scene in {out}")
+    console.print(f"oracle-labelled scene in {out}", markup=False)
 
 
 @sim_app.command("sheet")
@@ -311,7 +311,7 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
 
     out = out or session / "contact_sheet.png"
     write_png(out, session_contact_sheet(session, frames))
-    console.print(f"wrote {out}")
+    console.print(f"wrote {out}", markup=False)
 
 
 # ----------------------------------------------------------------------------------- dataset
@@ -342,7 +342,7 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
     else:
         s = build_dataset(scenes, out, add=add)
     _print_stats(s)
-    console.print(f"dataset in {out}")
+    console.print(f"dataset in {out}", markup=False)
 
 
 @dataset_app.command("stats")
@@ -371,7 +371,7 @@ def dataset_pack(root: Path = typer.Argument(..., help="dataset root"),
     from tdof20.benchmark.dataset import pack
 
     pack(root, split, part, out, cache_dir=cache_dir)
-    console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)")
+    console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)", markup=False)
 
 
 @dataset_app.command("import-tdof20")
@@ -411,7 +411,7 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
     for ln in lines:
         out_console.print(ln, highlight=False, markup=False)
     if s["written"]:
-        console.print(f"{'resumed and finished' if s.get('resumed') else 'imported'} into {s['out']}")
+        console.print(f"{'resumed and finished' if s.get('resumed') else 'imported'} into {s['out']}", markup=False)
     else:
         console.print("checked: nothing written")
 

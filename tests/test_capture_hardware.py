@@ -69,6 +69,20 @@ def devices():
     emu.stop()
 
 
+def test_the_config_reaches_the_real_drivers():
+    """build_rig hands the config's robot options to the UR driver (the arrival tolerance was left at
+    the driver's own 0.002 rad); nothing connects."""
+    import dataclasses
+
+    from tdof20.capture.rig import build_rig
+
+    cfg = hardware_config()
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, joint_tolerance_rad=0.01))
+    rig = build_rig(cfg)
+    assert rig.robot.joint_tolerance_rad == 0.01
+    assert rig.turntable.timeout_s == cfg.turntable.timeout_s
+
+
 def test_capture_with_the_real_drivers(tmp_path, devices):
     emu, ctl, robot, table = devices
     cfg = hardware_config()

@@ -54,6 +54,26 @@ def test_error_keeps_brackets(tmp_path):
                    "[sim] table", "[turntable] direction")
 
 
+def test_paths_with_brackets_print_whole(tmp_path):
+    """A folder named like rich markup ('[sim]', '[/x]') is printed as it is, not eaten or a MarkupError."""
+    out = tmp_path / "[sim]" / "[/x]" / "models"
+    res = run("objects", "export", out, "--ids", "3")
+    assert res.returncode == 0, res.stderr
+    assert str(out) in res.stderr.replace("\n", "") and "Traceback" not in res.stderr
+
+
+def test_unreachable_hand_eye_is_one_line(tmp_path):
+    """A simulated hand-eye 3 m off the flange: the arm has no joint solution; one line, not a traceback."""
+    from tdof20.sim.rig import DEFAULT_T_TCP_CAM
+
+    T = np.array(DEFAULT_T_TCP_CAM, float)
+    T[0, 3] += 3000.0
+    cfg = tmp_path / "he.toml"
+    cfg.write_text('[session]\nscene_id = "multi/08"\n[hand_eye]\nT_tcp_cam = ['
+                   + ", ".join(f"{x:g}" for x in T.reshape(-1)) + "]\n")
+    one_line_error(run("capture", "plan", cfg), str(cfg), "hand_eye.T_tcp_cam", "cannot place the camera")
+
+
 def test_help_keeps_defaults_in_brackets():
     """rich markup would eat a bracketed default such as [cosine] as a style tag: they are escaped."""
     train, predict = run("train", "--help").stdout, run("predict", "--help").stdout

@@ -211,6 +211,7 @@ _HE_metres = make_T(rotation_matrix([0, 0, 1], 0.05), [0.0, 0.06, 0.045])  # the
     (("objects",), [], "objects must be a non-empty list"),
     (("turntable", "steps"), 0, "turntable.steps must be >= 1"),
     (("turntable", "step_deg"), -0.9, "turntable.step_deg must be > 0"),
+    (("turntable", "direction"), "clockwise", "turntable.direction must be one of ccw, cw"),
     (("phases",), ["transparent", "glass"], "phases[1] must be one of"),
     (("format",), "bop", "is not a tdof20 raw session"),
     (("version",), 2, "version 2 is newer"),
@@ -802,3 +803,35 @@ def test_model_mesh_round_trip_and_bad_models(tmp_path):
     with pytest.raises(TdofError, match="no faces"):
         read_model_mesh(cloud)
     assert read_model_mesh(cloud, need_faces=False)[1].shape == (0, 3)
+
+
+def test_a_full_disk_names_the_file_and_leaves_the_old_one(tmp_path, monkeypatch):
+    """A write that fails inside the open temporary file (ENOSPC) is an OSError naming the target
+    (the CLI's and capture's one line say which file), no temporary file is left, and the file
+    already there keeps its bytes."""
+    import errno
+
+    from tdof20.formats.io import atomic_write_bytes
+
+    target = tmp_path / "scene_gt.json"
+    target.write_bytes(b"old")
+    real = os.fdopen
+
+    class Full:
+        def __init__(self, fd):
+            self.f = real(fd, "wb")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fdopen", lambda fd, mode: Full(fd))
+    with pytest.raises(OSError) as e:
+        atomic_write_bytes(target, b"new")
+    assert e.value.filename == str(target) and e.value.errno == errno.ENOSPC
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene_gt.json"] and target.read_bytes() == b"old"

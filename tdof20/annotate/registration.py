@@ -828,7 +828,7 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     _check_depth(session, cfg)
     recorded = isinstance(info.turntable, dict) and "direction" in info.turntable
     direction = str(info.turntable.get("direction", "ccw")).lower() if recorded else "ccw"
-    sign = -1.0 if direction in ("cw", "clockwise") else 1.0
+    sign = -1.0 if direction == "cw" else 1.0
     t_check = time.perf_counter()
     measured: dict[int, dict] = {}     # the check's plane and motion per arm, reused by the arm's registration
     checked = check_turntable(session, cfg, sign, recorded, measured)

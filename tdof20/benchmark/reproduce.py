@@ -1108,7 +1108,7 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
 
     todo = [j for j in jobs if not state.done(j.name)]
     console.print(f"reproduce ({cfg.preset}) -> {out}: {len(jobs)} jobs, {len(jobs) - len(todo)} done already",
-                  highlight=False) if progress else None
+                  highlight=False, markup=False) if progress else None
     with progress_bar(progress, unit="job") as bar:
         task = bar.add_task("reproduce", total=len(jobs), completed=len(jobs) - len(todo))
         for j in todo:
@@ -1125,7 +1125,7 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     paths = write_tables(out / "tables", entries, profiles, fusion or None, seg_on, seg_off, _objects(root),
                          header=_header(cfg, root, state), choices=choices(cfg, state))
     if progress:
-        console.print(f"tables: {paths['tables.md']}")
+        console.print(f"tables: {paths['tables.md']}", markup=False)
     return paths["tables.md"]
 
 

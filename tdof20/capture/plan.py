@@ -41,7 +41,12 @@ def arm_targets(cfg: CaptureConfig) -> list[np.ndarray]:
     if cfg.robot.positions:
         return [np.asarray(q, float) for q in cfg.robot.positions]
     layout = RigLayout(T_tcp_cam=hand_eye(cfg))
-    return [q for q, _ in layout.arm_positions(cfg.sim.n_arms)]
+    try:
+        return [q for q, _ in layout.arm_positions(cfg.sim.n_arms)]
+    except ValueError as e:  # ur5_ik: no joint solution for a viewing pose
+        raise TdofError(f"hand_eye.T_tcp_cam: the simulated arm cannot place the camera at its viewing positions "
+                        f"({e}): is the hand-eye transform in mm, and the camera near the tool flange?",
+                        cfg.source or None) from None
 
 
 @dataclass(frozen=True)

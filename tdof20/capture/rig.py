@@ -34,7 +34,7 @@ def build_rig(cfg: CaptureConfig, faults: dict | None = None) -> Rig:
     from tdof20.capture.hardware.ur import URRobot
 
     r, t, c = cfg.robot, cfg.turntable, cfg.camera
-    robot = URRobot(r.host, connect_timeout_s=r.connect_timeout_s)
+    robot = URRobot(r.host, connect_timeout_s=r.connect_timeout_s, joint_tolerance_rad=r.joint_tolerance_rad)
     table = GrblTurntable(t.port, baudrate=t.baudrate, axis=t.axis, units_per_degree=t.units_per_degree,
                           feed_deg_per_s=t.feed_deg_per_s, timeout_s=t.timeout_s, home=t.home)
     camera = OakDCamera(width=c.width, height=c.height, fps=c.fps, device_id=c.device_id or None)

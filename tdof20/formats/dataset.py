@@ -426,7 +426,7 @@ class Dataset:
         _check_writable(base, self.root)
         if show_progress:
             console.print(f"note: {self.root} has no restored depth (depth_restored/) for {len(todo)} image(s): "
-                          f"rendering it once from the models and poses into {base}")
+                          f"rendering it once from the models and poses into {base}", markup=False)
         meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         casters: dict[tuple, ModelRaycaster] = {}
         with progress(show_progress) as bar:

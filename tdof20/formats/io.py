@@ -50,11 +50,13 @@ def atomic_write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> No
                 f.flush()
                 os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(e, OSError) and e.filename is None:  # a write into the open file (a full disk): name it
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from e
         raise
 
 

@@ -355,7 +355,7 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
         console.print(f"{info['method']}: {info['predictions']} poses in {info['images']} images ({split}/{part}, "
                       f"masks: {info['masks']}, depth: {info['depth_mode']}); network "
                       f"{info['network_ms_per_image']:.1f} ms + pose {info['pose_ms_per_image']:.1f} ms per image "
-                      f"-> {out_csv}")
+                      f"-> {out_csv}", markup=False)
     return out_csv
 
 

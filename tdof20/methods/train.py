@@ -853,7 +853,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             console.print(f"{m.name} on {split}/{part}: {n} images at {image_size[0]}x{image_size[1]}, depth "
                           f"{depth_mode_of(cfg)}, batch {bs} x {world} process(es), {steps_per_epoch} steps/epoch, "
                           f"device {dev}{' (AMP ' + str(amp_dtype(dev)).split('.')[-1] + ')' if use_amp else ''}"
-                          + (f", resuming at epoch {epoch}, step {step}" if resume else ""))
+                          + (f", resuming at epoch {epoch}, step {step}" if resume else ""), markup=False)
 
         last_save = [time.perf_counter()]
 
@@ -946,7 +946,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if dist is not None:
             dist.barrier(group=wait_group)  # the others end when process 0 has written the checkpoint
         if show:
-            console.print(f"run: {out_run} (last.pt, config.json, loss.png)")
+            console.print(f"run: {out_run} (last.pt, config.json, loss.png)", markup=False)
     finally:
         # no barrier on the way out of an error: the other processes may be inside a collective;
         # the launcher (torchrun) ends them when this one exits non-zero

@@ -24,9 +24,9 @@ from typing import Callable
 import numpy as np
 import trimesh
 
+from tdof20.formats.session import TURN_DIRECTIONS as DIRECTIONS
 from tdof20.geometry import make_T, rotation_matrix
 
-DIRECTIONS = ("ccw", "cw")
 PHASES = ("transparent", "opaque")
 
 
