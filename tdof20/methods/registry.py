@@ -59,7 +59,7 @@ class Method:
 
     name: what the command line calls it (``tdof20 train NAME``); module: its import path;
     description: one line; inputs: 'rgb' or 'rgbd' (what it reads of a frame: RGB-D methods read
-    the transparent sensor's depth, raw or filled — never the restored one);
+    the transparent sensor's depth, raw or filled; the restored one only with the privileged depth_mode "restored");
     default_image_size: (H, W) the network sees unless a run says otherwise;
     config / transform: the names of its config dataclass and transform class in ``module``;
     forward: 'module:function' (net, batch) -> outputs, the network alone;
