@@ -245,6 +245,8 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
     from tdof20.formats import write_png
     from tdof20.sim.gallery import catalog_picture
 
+    if not 16 <= tile <= 1024:
+        raise TdofError(f"--tile must be in 16..1024 pixels, got {tile}")
     write_png(out, catalog_picture(tile))
     console.print(f"wrote {out}", markup=False)
 
@@ -281,7 +283,9 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
     try:
         angle_list = [float(a) for a in angles.split(",") if a.strip()]
     except ValueError:
-        raise TdofError(f"--angles must be comma-separated numbers, got '{angles}'") from None
+        angle_list = []
+    if not angle_list or not all(abs(a) <= 3600 for a in angle_list):  # nan and inf fail the bound too
+        raise TdofError(f"--angles must be comma-separated numbers of degrees (|a| <= 3600), got '{angles}'")
     from tdof20.capture import sim_config
     from tdof20.capture.rig import build_rig
 
@@ -309,6 +313,8 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
     from tdof20.formats import write_png
     from tdof20.viz import session_contact_sheet
 
+    if not 1 <= frames <= 100:
+        raise TdofError(f"--frames must be in 1..100, got {frames}")
     out = out or session / "contact_sheet.png"
     write_png(out, session_contact_sheet(session, frames))
     console.print(f"wrote {out}", markup=False)

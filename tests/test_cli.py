@@ -62,6 +62,24 @@ def test_paths_with_brackets_print_whole(tmp_path):
     assert str(out) in res.stderr.replace("\n", "") and "Traceback" not in res.stderr
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["sim", "frames", "--scene", "single/01", "--width", "80", "--height", "60", "--angles", "nan"], "--angles"),
+    (["sim", "frames", "--scene", "single/01", "--width", "80", "--height", "60", "--angles", ","], "--angles"),
+    (["sim", "frames", "--scene", "single/01", "--width", "80", "--height", "60", "--seed", "-1"], "sim.seed"),
+    (["capture", "run", "--sim", "--steps", "99999999999999999999", "--yes"], "turntable.steps: must be in 1..36000"),
+    (["objects", "picture", "P.png", "--tile", "0"], "--tile"),
+])
+def test_out_of_range_numbers_are_one_line(tmp_path, args, needle):
+    """Numbers a command cannot use (nan, negative seeds, zero sizes, 1e20 steps) are refused before
+    any work, in one line, instead of a traceback from numpy, OpenCV or a MemoryError."""
+    out = tmp_path / "o"
+    args = [str(out / "p.png") if a == "P.png" else a for a in args]
+    if args[0] != "objects":
+        args += ["--out", str(out)]
+    one_line_error(run(*args), needle)
+    assert not out.exists()
+
+
 def test_unreachable_hand_eye_is_one_line(tmp_path):
     """A simulated hand-eye 3 m off the flange: the arm has no joint solution; one line, not a traceback."""
     from tdof20.sim.rig import DEFAULT_T_TCP_CAM

@@ -264,6 +264,25 @@ def test_config_errors_and_presets(tmp_path):
     assert make_config("smoke").candidates == {} and make_config("smoke").select.epochs == "best"
 
 
+@pytest.mark.parametrize("toml,needle", [
+    ("[train]\nnum_workers = -1\n", "train.num_workers must be >= 0"),
+    ("[train]\nimage_size = [100000, 100000]\n", "train.image_size must be within 4096"),
+    ("[data]\nseed = -1\n", "data.seed must be >= 0"),
+    ('[data]\nscenes = ["multi/08", "multi/08"]\n', "data.scenes names a scene twice"),
+    ('[data]\nscenes = ["single/nope"]\n', "data.scenes: unknown scene 'single/nope'"),
+    ('device = "tpu"\n', "device"),
+])
+def test_config_values_that_would_fail_later_are_refused_first(tmp_path, toml, needle):
+    """Refused before anything is written, naming the TOML file (they failed after the dataset was
+    simulated, some as tracebacks)."""
+    cfg = tmp_path / "x.toml"
+    cfg.write_text(toml)
+    with pytest.raises(TdofError) as e:
+        reproduce(tmp_path / "o", config=cfg, progress=False)
+    assert str(cfg) in str(e.value) and needle in str(e.value) and "\n" not in str(e.value)
+    assert not (tmp_path / "o").exists()
+
+
 def test_digest_ignores_the_simulated_scenes_with_a_given_dataset(tmp_path):
     """With --dataset the [data] table is not used: changing it does not refuse a resume; without a
     dataset it does."""

@@ -121,9 +121,18 @@ class DataConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_ranges(self, "data", positive=("steps", "step_deg", "n_arms", "width", "height"))
+        check_ranges(self, "data", positive=("steps", "step_deg", "n_arms", "width", "height"),
+                     non_negative=("seed",))
         if not self.scenes:
             raise ConfigError("data.scenes must not be empty")
+        from tdof20.sim.scenes import normalize_scene_id
+
+        try:
+            names = [normalize_scene_id(s) for s in self.scenes]
+        except TdofError as e:
+            raise ConfigError(f"data.scenes: {e}") from None
+        if len(set(names)) != len(names):
+            raise ConfigError(f"data.scenes names a scene twice: {list(self.scenes)}")
         if self.steps * self.step_deg > 360.0 + 1e-6:
             raise ConfigError(f"data.steps x data.step_deg is more than one turn ({self.steps} x {self.step_deg})")
 
@@ -143,7 +152,10 @@ class TrainConfig:
         self.image_size = tuple(int(v) for v in self.image_size)
         if len(self.image_size) != 2:
             raise ConfigError(f"train.image_size must be [H, W], got {list(self.image_size)}")
-        check_ranges(self, "train", positive=("image_size", "batch_size", "lr"), non_negative=("max_steps",))
+        check_ranges(self, "train", positive=("image_size", "batch_size", "lr"),
+                     non_negative=("max_steps", "num_workers", "seed"))
+        if max(self.image_size) > 4096:
+            raise ConfigError(f"train.image_size must be within 4096 pixels a side, got {list(self.image_size)}")
 
 
 @dataclass
@@ -1010,6 +1022,13 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
 
         for s in cfg.data.scenes:
             normalize_scene_id(s)  # unknown scene names stop here
+    from tdof20.methods.train import select_device
+
+    try:
+        select_device(cfg.device)  # a device this machine lacks stops here, not after the dataset
+    except TdofError as e:
+        raise TdofError(str(e).replace("--device", "device", 1), config if isinstance(config, (str, Path)) else None) \
+            from None
     state = State(out, cfg)
     root = Path(cfg.dataset) if cfg.dataset else out / "dataset"
     val = Validation(out, root, cfg, state, progress)

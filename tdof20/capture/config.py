@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from tdof20.config import config_from_data, fail as _fail, load_config_file
+from tdof20.formats.session import MAX_STEPS
 
 TWO_PI = 2 * math.pi
 PHASES = ("transparent", "opaque")
@@ -188,8 +189,8 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     t = cfg.turntable
     if not 0 < t.step_deg <= 360:
         _fail(src, "turntable.step_deg", f"must be in (0, 360], got {t.step_deg}")
-    if t.steps < 1:
-        _fail(src, "turntable.steps", f"must be >= 1, got {t.steps}")
+    if not 1 <= t.steps <= MAX_STEPS:
+        _fail(src, "turntable.steps", f"must be in 1..{MAX_STEPS}, got {t.steps}")
     for k in ("units_per_degree", "feed_deg_per_s", "timeout_s", "baudrate"):
         if not getattr(t, k) > 0:
             _fail(src, f"turntable.{k}", f"must be > 0, got {getattr(t, k)}")
@@ -212,6 +213,8 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
             _fail(src, "hand_eye.T_tcp_cam", "translation looks like metres; millimetres expected")
     elif not cfg.is_sim:
         _fail(src, "hand_eye.T_tcp_cam", "give the hand-eye calibration (16 numbers, mm)")
+    if cfg.sim.seed < 0:
+        _fail(src, "sim.seed", f"must be >= 0, got {cfg.sim.seed}")
     if cfg.sim.n_arms < 1 or cfg.sim.n_arms > 8:
         _fail(src, "sim.n_arms", "must be in 1..8")
     from tdof20.sim.lab import DIRECTIONS, clutter_names

@@ -46,6 +46,9 @@ JOURNAL_FILE = "journal.jsonl"
 TRUTH_DIR = "truth"
 PHASES = ("transparent", "opaque")
 N_JOINTS = 6
+#: the most turntable steps per arm position a session may have (0.01 deg steps; the paper's 400 are
+#: 0.9 deg): a bound that keeps a typo (1e30 steps) from planning frames until memory runs out
+MAX_STEPS = 36000
 TURN_DIRECTIONS = ("ccw", "cw")  # turntable.direction: counter-clockwise (default) or clockwise, seen from above
 # single/<class name> (single/NN, NN = the object id 01..20, is an alias) or multi/00..multi/19
 SCENE_ID_RE = re.compile(r"^(single/([a-z][a-z0-9_]*|0[1-9]|1[0-9]|20)|multi/[01][0-9])$")
@@ -359,7 +362,7 @@ class SessionInfo:
 
         turntable = c.obj(c.get(d, "turntable", ""), "turntable")
         c.number(c.get(turntable, "step_deg", "turntable"), "turntable.step_deg", gt=0)
-        c.integer(c.get(turntable, "steps", "turntable"), "turntable.steps", lo=1)
+        c.integer(c.get(turntable, "steps", "turntable"), "turntable.steps", lo=1, hi=MAX_STEPS)
         if "direction" in turntable and turntable["direction"] not in TURN_DIRECTIONS:
             c.fail(f"turntable.direction must be one of {', '.join(TURN_DIRECTIONS)} (seen from above), "
                    f"got {turntable['direction']!r}")

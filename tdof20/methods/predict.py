@@ -398,6 +398,8 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     bop_split = ds.check_split(split) if ds.layout == "bop" else None
     if part not in PREDICT_PARTS:
         raise TdofError(f"--part must be one of {', '.join(PREDICT_PARTS)}, got '{part}'")
+    if batch_size < 1 or num_workers < 0:
+        raise TdofError(f"--batch-size must be >= 1 and --workers >= 0, got {batch_size} and {num_workers}")
     if images is None:
         if part == "val":
             from tdof20.benchmark.validation import part_images

@@ -679,8 +679,14 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             check_depth_mode(depth_mode)
         if lr_schedule not in LR_SCHEDULES:
             raise TdofError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{lr_schedule}'")
-        if batch_size < 1 or epochs < 1 or lr <= 0:
-            raise TdofError("--batch-size and --epochs must be >= 1 and --lr > 0")
+        if batch_size < 1 or epochs < 1 or not 0 < lr < float("inf"):
+            raise TdofError(f"--batch-size and --epochs must be >= 1 and --lr a number > 0, got {batch_size}, "
+                            f"{epochs} and {lr}")
+        if num_workers < 0 or seed < 0:
+            raise TdofError(f"--workers and --seed must be >= 0, got {num_workers} and {seed}")
+        if image_size is not None and not isinstance(image_size, str) and not all(
+                8 <= int(v) <= 4096 for v in image_size):
+            raise TdofError(f"--image-size must be within 8..4096 pixels a side, got {image_size}")
         if stop_epoch is not None and int(stop_epoch) < 1:
             raise TdofError(f"stop_epoch must be >= 1, got {stop_epoch}")
         if fuse_stages is not None and not 1 <= int(fuse_stages) <= 5:
