@@ -204,7 +204,7 @@ backend = "oakd"
     (("robot", "positions", [[10, 20, 30, 40, 50, 60]]), "looks like degrees"),
     (("robot", "backend", "kuka"), "unknown backend 'kuka'"),
     (("robot", "spead", 1.0), "unknown option 'robot.spead'"),
-    (("turntable", "steps", 0), "turntable.steps: must be >= 1"),
+    (("turntable", "steps", 0), "turntable.steps: must be in 1..36000"),
     (("session", "objects", [3, 25]), "unknown object id 25"),
     (("session", "scene_id", "multi/30"), "multi/30"),
     (("session", "scene_id", "multi/20"), "multi/00..multi/19"),  # the release numbers multi scenes 00..19
