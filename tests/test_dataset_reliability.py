@@ -144,6 +144,15 @@ def test_add_refusals_leave_the_dataset_as_it_was(scenes, tmp_path, capsys):
     rc, msg = cli(capsys, "dataset", "build", scenes["single/05@64x48"], "--out", root, "--add")
     assert rc == 2 and msg == (f"error: {scenes['single/05@64x48']}: its images are 64x48 (width x height), those of "
                                f"the dataset {root} (camera.json) are 80x60: a dataset has one image size")
+    # absurd turntable steps in scene_info.json (a MemoryError in the split rules, after new model
+    # files had been written beside an unchanged dataset_info.json)
+    huge = tmp_path / "s12big"
+    shutil.copytree(scenes["single/12"], huge)
+    info = load(huge / "scene_info.json")
+    info["steps"] = 10**30
+    (huge / "scene_info.json").write_text(json.dumps(info))
+    rc, msg = cli(capsys, "dataset", "build", huge, "--out", root, "--add")
+    assert rc == 2 and msg.startswith(f"error: {huge / 'scene_info.json'}: steps must be an integer in 1..36000")
     assert tree(root) == before
     assert not (tmp_path / "none").exists()
 

@@ -33,9 +33,11 @@ from tdof20.errors import TdofError
 from tdof20.formats import (check_output_dir, check_output_file, check_scene_images, read_bytes, read_json,
                             read_models_info, read_scene, write_json)
 from tdof20.formats.dataset import open_dataset
+from tdof20.formats.session import MAX_STEPS
 from tdof20.progress import progress
 
 TARGET_MIN_VISIB = 0.1  # BOP: instances at least 10 % visible are targets
+MAX_ARMS = 64  # arm positions of a scene (TDoF20: 4); bounds a typo before the split rules loop over them
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json", "scene_info.json")
 BUILD_MARKER = ".build.json"  # the scene list of a build under way; removed when it is done
 SPLIT_RULES = {"simple": "single-object scenes, contiguous test arc per arm position (docs/dataset.md)",
@@ -49,9 +51,9 @@ def _scene_info(scene_dir: Path) -> dict:
     for k in ("scene_id", "steps", "n_arms"):
         if k not in info:
             raise TdofError(f"missing field '{k}'", scene_dir / "scene_info.json")
-    for k in ("steps", "n_arms"):
-        if isinstance(info[k], bool) or not isinstance(info[k], int) or info[k] < 1:
-            raise TdofError(f"{k} must be an integer >= 1, got {info[k]!r}", scene_dir / "scene_info.json")
+    for k, hi in (("steps", MAX_STEPS), ("n_arms", MAX_ARMS)):
+        if isinstance(info[k], bool) or not isinstance(info[k], int) or not 1 <= info[k] <= hi:
+            raise TdofError(f"{k} must be an integer in 1..{hi}, got {info[k]!r}", scene_dir / "scene_info.json")
     try:
         scene_number(info["scene_id"])  # checks the name
     except TdofError as e:
