@@ -66,9 +66,12 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
     if text is None:
         return None
     try:
-        return [int(x) for x in text.replace(" ", "").split(",") if x]
+        ids = [int(x) for x in text.replace(" ", "").split(",") if x]
     except ValueError:
         raise TdofError(f"--ids must be comma-separated integers, got '{text}'") from None
+    if not ids:
+        raise TdofError(f"--ids names no object, got '{text}' (leave it out for all)")
+    return ids
 
 
 # ----------------------------------------------------------------------------------- capture
@@ -245,8 +248,11 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
     from tdof20.formats import write_png
     from tdof20.sim.gallery import catalog_picture
 
+    from tdof20.formats.io import check_output_file
+
     if not 16 <= tile <= 1024:
         raise TdofError(f"--tile must be in 16..1024 pixels, got {tile}")
+    check_output_file(out, "OUT", "PNG file")
     write_png(out, catalog_picture(tile))
     console.print(f"wrote {out}", markup=False)
 
@@ -315,7 +321,9 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
 
     if not 1 <= frames <= 100:
         raise TdofError(f"--frames must be in 1..100, got {frames}")
-    out = out or session / "contact_sheet.png"
+    from tdof20.formats.io import check_output_file
+
+    out = check_output_file(out or session / "contact_sheet.png", "--out", "PNG file")
     write_png(out, session_contact_sheet(session, frames))
     console.print(f"wrote {out}", markup=False)
 

@@ -205,6 +205,7 @@ backend = "oakd"
     (("robot", "backend", "kuka"), "unknown backend 'kuka'"),
     (("robot", "spead", 1.0), "unknown option 'robot.spead'"),
     (("turntable", "steps", 0), "turntable.steps: must be in 1..36000"),
+    (("session", "objects", [3, 3, 12]), "session.objects[1]: object 3 is listed twice"),
     (("session", "objects", [3, 25]), "unknown object id 25"),
     (("session", "scene_id", "multi/30"), "multi/30"),
     (("session", "scene_id", "multi/20"), "multi/00..multi/19"),  # the release numbers multi scenes 00..19

@@ -80,6 +80,14 @@ def test_out_of_range_numbers_are_one_line(tmp_path, args, needle):
     assert not out.exists()
 
 
+def test_empty_ids_and_a_folder_for_a_png_are_one_line(tmp_path):
+    one_line_error(run("objects", "export", tmp_path / "m", "--ids", ""), "--ids names no object")
+    assert not (tmp_path / "m").exists()
+    (tmp_path / "d").mkdir()
+    one_line_error(run("objects", "picture", tmp_path / "d", "--tile", "16"), str(tmp_path / "d"), "names a folder")
+    assert list((tmp_path / "d").iterdir()) == [] and not list(tmp_path.glob(".*.tmp"))
+
+
 def test_unreachable_hand_eye_is_one_line(tmp_path):
     """A simulated hand-eye 3 m off the flange: the arm has no joint solution; one line, not a traceback."""
     from tdof20.sim.rig import DEFAULT_T_TCP_CAM

@@ -156,6 +156,8 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     for i, o in enumerate(s.objects):
         if not 1 <= o <= 20:
             _fail(src, f"session.objects[{i}]", f"unknown object id {o} (valid: 1-20)")
+        if o in s.objects[:i]:
+            _fail(src, f"session.objects[{i}]", f"object {o} is listed twice (each object once per scene)")
     if s.retries < 0:
         _fail(src, "session.retries", "must be >= 0")
     for name, allowed in BACKENDS.items():
