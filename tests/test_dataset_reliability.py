@@ -363,3 +363,14 @@ def test_one_file_reader_names_the_file_and_the_problem(tmp_path):
         read_toml(tmp_path / "nope.toml")
     with pytest.raises(TdofError, match=r"nope\.csv: results file not found$"):
         read_results(tmp_path / "nope.csv")
+
+
+def test_oracle_labels_refuse_a_corrupt_truth_png(scenes, tmp_path, capsys):
+    """`sim label` decodes the truth's own PNGs (no checksum guards them) before copying: a
+    truncated mask is one line naming it, not a scene that dataset build refuses later."""
+    raw = tmp_path / "raw"
+    shutil.copytree(scenes["single/05@64x48"].parent.parent / "raw" / "single_05", raw)
+    mask = sorted((raw / "truth" / "mask_visib").glob("*.png"))[1]
+    mask.write_bytes(mask.read_bytes()[:50])
+    rc, msg = cli(capsys, "sim", "label", raw, "--out", tmp_path / "scene")
+    assert rc == 2 and msg.startswith(f"error: {mask}: corrupt PNG")

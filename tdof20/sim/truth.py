@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tdof20.formats import BopSceneWriter, read_json, read_session, write_json
+from tdof20.formats import BopSceneWriter, read_json, read_png, read_session, write_json
 from tdof20.geometry import invert
 from tdof20.objects import export_models
 from tdof20.progress import progress
@@ -117,6 +117,8 @@ def oracle_scene(session_dir: str | Path, out_dir: str | Path, show_progress: bo
                     m = f"{im_id:06d}_{g:06d}.png"
                     pairs.append((session.truth_dir / kind / m, out / kind / m))
             for src, dst in pairs:
+                if src.parent.parent == session.truth_dir:  # the truth's own PNGs: no checksum guards them
+                    read_png(src, "depth" if src.parent.name == "depth" else "mask")
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(src, dst)
             bar.advance(task)
