@@ -836,3 +836,13 @@ def test_a_full_disk_names_the_file_and_leaves_the_old_one(tmp_path, monkeypatch
         atomic_write_bytes(target, b"new")
     assert e.value.filename == str(target) and e.value.errno == errno.ENOSPC
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene_gt.json"] and target.read_bytes() == b"old"
+
+
+def test_a_corrupt_png_prints_nothing_of_opencv(capfd):
+    """OpenCV's own '[ERROR:0@...] grfmt_png.cpp' line would precede the CLI's one-line error."""
+    from tdof20.formats.io import decode_png
+
+    with pytest.raises(TdofError, match="corrupt PNG"):
+        decode_png(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40, "x.png")
+    out, err = capfd.readouterr()
+    assert "grfmt" not in err and "ERROR" not in err

@@ -24,8 +24,9 @@ from isal import isal_zlib
 from tdof20.errors import TdofError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# OpenCV would print its own warning about a corrupt file; our one-line error says it instead
-cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+# OpenCV prints its own warnings and "[ERROR:0@...] global grfmt_png.cpp ..." lines about a corrupt
+# file; our one-line error says it instead (one line, naming the file)
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
 def _current_umask() -> int:
