@@ -171,3 +171,34 @@ def test_pack_and_torch_dataset_round_trip(dataset, tmp_path):
     (tmp_path / "bad.h5").write_bytes(b"not hdf5")
     with pytest.raises(TdofError, match="bad.h5"):
         ShardDataset(tmp_path / "bad.h5")
+    # contents a training must not take (a shard edited or written by other code): a NaN pose,
+    # translations in metres, depth of another dtype
+    import shutil
+
+    import h5py
+
+    def edited(name, edit):
+        path = tmp_path / f"{name}.h5"
+        shutil.copyfile(out, path)
+        with h5py.File(path, "a") as f:
+            edit(f)
+        return path
+
+    def nan(f):
+        t = f["t"][:]
+        t[0, 0, 0] = np.nan
+        f["t"][...] = t
+
+    def metres(f):
+        f["t"][...] = f["t"][:] / 1000.0
+
+    def float_depth(f):
+        d = f["depth"][:].astype(np.float64)
+        del f["depth"]
+        f["depth"] = d
+
+    for name, edit, needle in (("nan", nan, "not finite"), ("metres", metres, "look like metres"),
+                               ("f64", float_depth, "depth is float64, uint16 expected")):
+        with pytest.raises(TdofError, match=needle) as e:
+            ShardDataset(edited(name, edit))
+        assert f"{name}.h5" in str(e.value)

@@ -33,6 +33,8 @@ from tdof20.formats.bop import read_models_info, read_scene
 from tdof20.formats.io import check_output_file, read_png
 
 IMAGE_KEYS = ("rgb", "depth", "depth_restored", "label", "instance")
+SHARD_DTYPES = {"rgb": np.uint8, "depth": np.uint16, "depth_restored": np.uint16, "label": np.uint16,
+                "instance": np.uint8}
 
 
 def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: dict | None = None,
@@ -137,10 +139,23 @@ class ShardDataset:
                 self._n = len(f["rgb"])
                 self.attrs = dict(f.attrs)
                 missing = [k for k in IMAGE_KEYS + ("obj_id", "R", "t", "K", "depth_scale") if k not in f]
+                if not missing:
+                    dtypes = {k: f[k].dtype for k in IMAGE_KEYS}
+                    obj, R, t = f["obj_id"][:], f["R"][:], f["t"][:]
         except (OSError, KeyError) as e:
             raise TdofError(f"not a readable tdof20 shard ({e})", self.path) from None
         if missing:
             raise TdofError(f"not a tdof20 shard: missing {', '.join(missing)}", self.path)
+        bad = [f"{k} is {dt}, {np.dtype(SHARD_DTYPES[k]).name} expected" for k, dt in dtypes.items()
+               if dt != SHARD_DTYPES[k]]
+        if bad:
+            raise TdofError(f"not a tdof20 shard: {'; '.join(bad)}", self.path)
+        used = obj > 0
+        if not (np.isfinite(R[used]).all() and np.isfinite(t[used]).all()):
+            raise TdofError("holds a pose that is not finite (NaN or inf in R or t)", self.path)
+        if used.any() and float(np.median(np.linalg.norm(t[used], axis=-1))) < 1.0:
+            raise TdofError("translations look like metres (median |t| under 1 mm): t must be in millimetres",
+                            self.path)
         self._f = None
 
     def __len__(self) -> int:
