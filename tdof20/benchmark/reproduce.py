@@ -566,9 +566,7 @@ def _sim_dataset(out: Path, cfg: ReproduceConfig, show: bool) -> Path:
     from tdof20.sim.truth import oracle_scene
 
     d = cfg.data
-    scenes = [normalize_scene_id(s) for s in d.scenes]
-    if len(set(scenes)) != len(scenes):
-        raise TdofError(f"data.scenes names a scene twice: {', '.join(scenes)}")
+    scenes = [normalize_scene_id(s) for s in d.scenes]  # known and distinct: DataConfig checked them
     labelled = []
     for s in scenes:
         raw = out / "raw" / s.replace("/", "_")
@@ -1017,11 +1015,6 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
         from tdof20.formats.dataset import open_dataset
 
         open_dataset(cfg.dataset)  # the one "not a dataset" check, before anything is written
-    else:
-        from tdof20.sim.scenes import normalize_scene_id
-
-        for s in cfg.data.scenes:
-            normalize_scene_id(s)  # unknown scene names stop here
     from tdof20.methods.train import select_device
 
     try:
