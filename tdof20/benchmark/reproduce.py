@@ -154,8 +154,11 @@ class TrainConfig:
             raise ConfigError(f"train.image_size must be [H, W], got {list(self.image_size)}")
         check_ranges(self, "train", positive=("image_size", "batch_size", "lr"),
                      non_negative=("max_steps", "num_workers", "seed"))
-        if max(self.image_size) > 4096:
-            raise ConfigError(f"train.image_size must be within 4096 pixels a side, got {list(self.image_size)}")
+        from tdof20.methods.train import IMAGE_SIDE
+
+        if not all(IMAGE_SIDE[0] <= v <= IMAGE_SIDE[1] for v in self.image_size):
+            raise ConfigError(f"train.image_size must be within {IMAGE_SIDE[1]} pixels a side and at least "
+                              f"{IMAGE_SIDE[0]}, got {list(self.image_size)}")
 
 
 @dataclass

@@ -32,9 +32,10 @@ from tdof20.errors import TdofError
 from tdof20.formats.bop import read_models_info, read_scene
 from tdof20.formats.io import check_output_file, read_png
 
-IMAGE_KEYS = ("rgb", "depth", "depth_restored", "label", "instance")
+#: the per-image arrays and their types (what pack_shard writes and ShardDataset accepts)
 SHARD_DTYPES = {"rgb": np.uint8, "depth": np.uint16, "depth_restored": np.uint16, "label": np.uint16,
                 "instance": np.uint8}
+IMAGE_KEYS = tuple(SHARD_DTYPES)
 
 
 def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: dict | None = None,
@@ -72,14 +73,15 @@ def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: di
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         with h5py.File(tmp, "w") as f:
-            def img(name, shape, dtype):
-                return f.create_dataset(name, (n, *shape), dtype=dtype, chunks=(1, *shape), compression="lzf")
+            def img(name, shape):
+                return f.create_dataset(name, (n, *shape), dtype=SHARD_DTYPES[name], chunks=(1, *shape),
+                                        compression="lzf")
 
-            d_rgb = img("rgb", (h, w, 3), np.uint8)
-            d_depth = img("depth", (h, w), np.uint16)
-            d_rest = img("depth_restored", (h, w), np.uint16)
-            d_label = img("label", (h, w), np.uint16)
-            d_inst = img("instance", (h, w), np.uint8)
+            d_rgb = img("rgb", (h, w, 3))
+            d_depth = img("depth", (h, w))
+            d_rest = img("depth_restored", (h, w))
+            d_label = img("label", (h, w))
+            d_inst = img("instance", (h, w))
             obj = np.zeros((n, m), np.int16)
             R = np.zeros((n, m, 3, 3), np.float32)
             t = np.zeros((n, m, 3), np.float32)
@@ -96,8 +98,8 @@ def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: di
                 rest = restored(sid, im)
                 if rest is not None:
                     d_rest[j] = rest
-                lab = np.zeros((h, w), np.uint16)
-                ins = np.zeros((h, w), np.uint8)
+                lab = np.zeros((h, w), SHARD_DTYPES["label"])
+                ins = np.zeros((h, w), SHARD_DTYPES["instance"])
                 for g, entry in enumerate(sc.gt.get(im, [])):
                     mv = sc.mask(im, g, visib=True)
                     lab[mv] = entry["obj_id"]

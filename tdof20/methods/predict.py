@@ -439,7 +439,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     data = TransformedDataset(SceneImages(dataset_root, images, labels=labels, restored=depth_mode == "restored",
                                           split=bop_split, cache_dir=cache_dir),
                               method.transform(cfg, meta, train=False))
-    loader = torch.utils.data.DataLoader(data, batch_size=max(1, int(batch_size)), shuffle=False,
+    loader = torch.utils.data.DataLoader(data, batch_size=int(batch_size), shuffle=False,
                                          num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
                                          pin_memory=dev.type == "cuda")
     torch.manual_seed(seed)

@@ -78,6 +78,11 @@ CONFIG = "config.json"
 # devices and processes
 
 
+#: the smallest and largest image side a training takes (a typo such as 100000x100000 would try to
+#: allocate tens of GB before failing)
+IMAGE_SIDE = (8, 4096)
+
+
 def select_device(device: str = "auto") -> torch.device:
     """'auto' -> the first CUDA GPU, else Apple MPS, else the CPU; anything else as torch reads it."""
     if device in (None, "", "auto"):
@@ -685,8 +690,9 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if num_workers < 0 or seed < 0:
             raise TdofError(f"--workers and --seed must be >= 0, got {num_workers} and {seed}")
         if image_size is not None and not isinstance(image_size, str) and not all(
-                8 <= int(v) <= 4096 for v in image_size):
-            raise TdofError(f"--image-size must be within 8..4096 pixels a side, got {image_size}")
+                IMAGE_SIDE[0] <= int(v) <= IMAGE_SIDE[1] for v in image_size):
+            raise TdofError(f"--image-size must be within {IMAGE_SIDE[0]}..{IMAGE_SIDE[1]} pixels a side, "
+                            f"got {image_size}")
         if stop_epoch is not None and int(stop_epoch) < 1:
             raise TdofError(f"stop_epoch must be >= 1, got {stop_epoch}")
         if fuse_stages is not None and not 1 <= int(fuse_stages) <= 5:
