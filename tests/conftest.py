@@ -1,3 +1,5 @@
+import shutil
+
 import pytest
 
 from tdof20.capture import run_capture, sim_config
@@ -17,9 +19,40 @@ def renderer_640() -> SimRenderer:
     return build_rig(sim_config("multi/08")).world.renderer
 
 
+#: folders of session-scoped fixtures, which outlive the module that made them
+_SESSION_DIRS: set = set()
+#: modules (their node ids) with a failed test: their folders are kept to look at
+_FAILED_MODULES: set = set()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    rep = yield
+    if rep.failed:
+        _FAILED_MODULES.add(item.module.__name__)
+    return rep
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _module_folders(request, tmp_path_factory):
+    """Removes the folders a module made under the run's temporary folder when its tests are
+    done (a module fixture's dataset, runs and checkpoints: several GB over the suite otherwise,
+    more than a CI machine's free disk), unless one of its tests failed. A passing test's own
+    tmp_path goes at once (tmp_path_retention_policy = "failed" in pyproject.toml)."""
+    base = tmp_path_factory.getbasetemp()
+    before = set(base.iterdir())
+    yield
+    if request.module.__name__ in _FAILED_MODULES:
+        return
+    for p in set(base.iterdir()) - before - _SESSION_DIRS:
+        shutil.rmtree(p, ignore_errors=True)
+
+
 @pytest.fixture(scope="session")
 def small_session(tmp_path_factory, small_cfg):
-    out = tmp_path_factory.mktemp("sim") / "session"
+    base = tmp_path_factory.mktemp("sim")
+    _SESSION_DIRS.add(base)
+    out = base / "session"
     run_capture(small_cfg, out, yes=True, show_progress=False)
     return out
 

@@ -121,6 +121,15 @@ def test_end_to_end_tables_hold_every_method_and_object(done):
     state = read_json(out / "reproduce.json")
     assert all(not k.startswith("train/") or (out / "runs" / k[6:] / "last.pt").exists() for k in state["jobs"])
     assert len([k for k in state["jobs"] if k.startswith("train/")]) == 4 * 2 + 2 + 2  # + hff6dof-3d on both protocols
+    # a finished training keeps its weights, not the optimiser's state; train refuses to go on with it
+    from tdof20.methods.train import train
+
+    ck = torch.load(out / "runs" / "hff6dof_simple" / "last.pt", map_location="cpu", weights_only=True)
+    assert "model" in ck and "optimizer" not in ck and ck["step"] >= 1
+    with pytest.raises(TdofError, match="holds the weights only") as e:
+        train(out / "dataset", "simple", out / "runs" / "hff6dof_simple", image_size=(32, 32), epochs=5,
+              progress=False)
+    assert "last.pt" in str(e.value)
 
 
 def test_resume_after_a_kill_reuses_finished_work(done):

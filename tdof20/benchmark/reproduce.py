@@ -1132,6 +1132,10 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
             info = j.run()
             state.finish(j.name, time.perf_counter() - t0, stage=j.stage, cpu_seconds=round(_cpu_seconds() - c0, 2),
                          **info)
+            if j.stage == "train":  # over: its optimiser state is two thirds of the checkpoint, and dead
+                from tdof20.methods.train import drop_optimizer
+
+                drop_optimizer(info["run"])
             bar.advance(task)
 
     # tables (always rebuilt from what is on disk: cheap)
