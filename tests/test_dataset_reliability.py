@@ -232,6 +232,55 @@ def test_every_image_is_checked_before_anything_is_copied(scenes, tmp_path, caps
     assert not out.exists()
 
 
+@pytest.mark.parametrize("case", ["unknown_obj", "t_metres", "depth_scale", "diameter_metres", "garbage_ply",
+                                  "ply_metres"])
+@pytest.mark.parametrize("layout", ["tdof20", "bop"])
+def test_labels_and_models_are_checked_before_anything_is_copied(scenes, tmp_path, capsys, case, layout):
+    """Labels a dataset must not take: an object the scene has no model of, translations, depth or
+    models in metres, a model file that is not one. Each refused in one line naming the file."""
+    scene = tmp_path / "s12"
+    shutil.copytree(scenes["single/12"], scene)
+    gt_path, cam_path, info_path = scene / "scene_gt.json", scene / "scene_camera.json", scene / "models" / "models_info.json"
+    gt, info = load(gt_path), load(info_path)
+    (obj,) = [int(k) for k in info]
+    ply = scene / "models" / f"obj_{obj:06d}.ply"
+    if case == "unknown_obj":
+        gt["3"][0]["obj_id"] = 99
+        gt_path.write_text(json.dumps(gt))
+        bad, why = gt_path, f"image 3 instance 0 is object 99, which the scene's models/models_info.json does not list"
+    elif case == "t_metres":
+        for insts in gt.values():
+            for e in insts:
+                e["cam_t_m2c"] = [v / 1000 for v in e["cam_t_m2c"]]
+        gt_path.write_text(json.dumps(gt))
+        bad, why = gt_path, "the objects lie "
+    elif case == "depth_scale":
+        cams = load(cam_path)
+        for c in cams.values():
+            c["depth_scale"] = 0.001
+        cam_path.write_text(json.dumps(cams))
+        bad, why = cam_path, "image 0: depth x depth_scale is "
+    elif case == "diameter_metres":
+        info[str(obj)]["diameter"] = info[str(obj)]["diameter"] / 1000
+        info_path.write_text(json.dumps(info))
+        bad, why = info_path, f"object {obj}: diameter "
+    elif case == "garbage_ply":
+        ply.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n\x00\xff garbage")
+        bad, why = ply, ""
+    else:
+        import trimesh
+
+        m = trimesh.load(ply, process=False)
+        m.apply_scale(0.001)
+        ply.write_bytes(trimesh.exchange.ply.export_ply(m, encoding="binary"))
+        bad, why = ply, "the model spans "
+    out = tmp_path / "R"
+    args = ["dataset", "build", scene, "--out", out] + (["--layout", "bop", "--split", "hard"] if layout == "bop" else [])
+    rc, msg = cli(capsys, *args)
+    assert rc == 2 and msg.startswith(f"error: {bad}: {why}"), msg
+    assert not out.exists()
+
+
 def test_scenes_of_two_image_sizes_are_refused(scenes, tmp_path, capsys):
     rc, msg = cli(capsys, "dataset", "build", scenes["single/12"], scenes["single/05@64x48"], "--out", tmp_path / "R")
     assert rc == 2 and msg == (f"error: {scenes['single/12']}: its images are 80x60 (width x height), those of "
@@ -331,6 +380,18 @@ def test_packing_an_empty_part_names_split_part_root_and_contents(multi_only, tm
                                     "scenes not in its test set (multi/00, 01, 03-07, 12-14, 16-19)")
     assert not (tmp_path / "s.h5").exists() and not (tmp_path / "h.h5").exists()
 
+
+
+def test_a_splits_file_naming_an_unknown_scene_is_named(multi_only, tmp_path, capsys):
+    root = tmp_path / "R"
+    shutil.copytree(multi_only, root)
+    f = root / "splits" / "hard_test.json"
+    m = load(f)
+    m["39"] = [0, 1]
+    f.write_text(json.dumps(m))
+    rc, msg = cli(capsys, "dataset", "pack", root, "--split", "hard", "--part", "test", "--out", tmp_path / "h.h5")
+    assert rc == 2 and msg == (f"error: {f}: names scene 39, which the dataset does not hold (scenes/: 29)"), msg
+    assert not (tmp_path / "h.h5").exists()
 
 # ------------------------------------------------------------------------------------- one reader
 def test_one_file_reader_names_the_file_and_the_problem(tmp_path):

@@ -219,6 +219,20 @@ def test_a_damaged_old_run_config_is_one_line(tmp_path):
         m.config_from_run(config, run / "config.json")
 
 
+@pytest.mark.parametrize("version", [99, "2", 0, True])
+def test_a_run_of_an_unknown_version_is_refused(tmp_path, version):
+    from tdof20.methods.train import RUN_VERSION, read_run_config
+
+    run, _ = _old_run(tmp_path)
+    assert read_run_config(run)["version"] == 1
+    config = json.loads((run / "config.json").read_text())
+    config["version"] = version
+    (run / "config.json").write_text(json.dumps(config))
+    with pytest.raises(TdofError, match=rf"config.json: is a run of version {version!r}; this tdof20 reads "
+                                        rf"versions 1..{RUN_VERSION}"):
+        read_run_config(run)
+
+
 def test_example_batches_hold_what_forward_needs():
     for name in registry.method_names():
         m = registry.get_method(name)

@@ -376,6 +376,22 @@ def test_export_subset_and_bad_id(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+
+def test_export_keeps_an_earlier_export_and_refuses_a_users_models(tmp_path):
+    out = export_models(tmp_path / "m", obj_ids=[3, 17])
+    export_models(out, obj_ids=[5])  # an earlier export's objects stay listed
+    assert list(json.loads((out / "models_info.json").read_text())) == ["3", "5", "17"]
+    export_models(out, obj_ids=[5])  # again: the same
+    assert list(json.loads((out / "models_info.json").read_text())) == ["3", "5", "17"]
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "models_info.json").write_text('{"1": {"diameter": 172.0}}')
+    (user / "obj_000001.ply").write_bytes(b"the user's model")
+    with pytest.raises(TdofError, match="models_info.json of other models .object 1's entry is not the catalog's"):
+        export_models(user, obj_ids=[1])
+    assert (user / "obj_000001.ply").read_bytes() == b"the user's model"
+    assert (user / "models_info.json").read_text() == '{"1": {"diameter": 172.0}}'
+
 # ------------------------------------------------------------------------------------------
 # Builders
 # ------------------------------------------------------------------------------------------

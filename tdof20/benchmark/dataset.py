@@ -61,6 +61,91 @@ def _scene_info(scene_dir: Path) -> dict:
     return info
 
 
+#: a label whose translations or diameters fall under these (mm) is in metres; a model whose
+#: box diagonal is outside [lo, hi] x its models_info diameter is in other units than its entry
+#: (the diagonal of a box around a set of diameter d is between d and sqrt(3) d; the margins take
+#: a diameter measured by another tool or over another sampling)
+METRES_BELOW_MM = 10.0
+MODEL_EXTENT_RATIO = (0.5, 3.0)
+#: the median depth x depth_scale at an image's labelled objects, over their median distance, must
+#: lie in this range (a depth_scale giving metres or micrometres is 1000 times off)
+DEPTH_RATIO = (0.2, 5.0)
+
+
+def _check_model_file(ply: Path, obj_id: int, entry: dict, info_path: Path) -> None:
+    """The model decodes (a mesh or points, finite) and its size agrees with models_info.json."""
+    import numpy as np
+
+    from tdof20.formats.bop import read_model_mesh
+
+    diameter = float(entry["diameter"])
+    if diameter < METRES_BELOW_MM:
+        raise TdofError(f"object {obj_id}: diameter {diameter:g} looks like metres: models_info.json is in "
+                        "millimetres", info_path)
+    V, _ = read_model_mesh(ply, need_faces=False)
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    lo, hi = MODEL_EXTENT_RATIO
+    if not lo * diameter <= diag <= hi * diameter:
+        raise TdofError(f"the model spans {diag:.4g} (its box's diagonal) but models_info.json gives object {obj_id} "
+                        f"a diameter of {diameter:g} mm: the model and its entry are in different units "
+                        "(the model must be in millimetres)", ply)
+
+
+def _check_labels(d: Path, scene, models: dict[int, dict]) -> None:
+    """What a label must be before it joins a dataset: an object of the scene's models/, a
+    translation in millimetres, a depth_scale that gives millimetres. A TdofError names the file."""
+    import numpy as np
+
+    from tdof20.formats.bop import SCENE_CAMERA, SCENE_GT
+
+    dists = []
+    for im_id, insts in sorted(scene.gt.items()):
+        for gt_id, e in enumerate(insts):
+            if int(e["obj_id"]) not in models:
+                raise TdofError(f"image {im_id} instance {gt_id} is object {e['obj_id']}, which the scene's "
+                                f"models/models_info.json does not list (objects {sorted(models)})", d / SCENE_GT)
+            dists.append(float(np.linalg.norm(e["cam_t_m2c"])))
+    if not dists:
+        return
+    med = float(np.median(dists))
+    if med < METRES_BELOW_MM:
+        raise TdofError(f"the objects lie {med:.4g} from the camera in the median: cam_t_m2c looks like metres "
+                        "(it must be in millimetres)", d / SCENE_GT)
+    # the depth's scale, on the first labelled image: depth at the objects against their distance
+    im_id = next(i for i in sorted(scene.gt) if scene.gt[i])
+    z = [float(e["cam_t_m2c"][2]) for e in scene.gt[im_id]]
+    raw = scene.depth(im_id)
+    valid = raw[raw > 0]
+    if valid.size and np.median(z) > 0:
+        got = float(np.median(valid)) * scene.depth_scale(im_id)
+        ratio = got / float(np.median(z))
+        if not DEPTH_RATIO[0] <= ratio <= DEPTH_RATIO[1]:
+            raise TdofError(f"image {im_id}: depth x depth_scale is {got:.4g} mm in the median where its objects "
+                            f"are {float(np.median(z)):.4g} mm away: depth_scale ({scene.depth_scale(im_id):g}) "
+                            "must turn the depth PNG into millimetres", d / SCENE_CAMERA)
+
+
+def _read_scenes(dirs: list[Path]) -> tuple[dict[int, tuple[dict, Path]], dict[int, tuple[int, int]], dict]:
+    """Read and check the annotated scene folders: ({scene id: (scene_info, folder)}, {id: (height,
+    width)}, {id: BopScene}). Each scene's JSON files agree, every image is a PNG of its kind, and
+    its labels pass _check_labels against its own models (a scene without models/ is refused
+    later, by the models' plan). A scene given twice is refused."""
+    new: dict[int, tuple[dict, Path]] = {}
+    sizes: dict[int, tuple[int, int]] = {}
+    scenes = {}
+    for d in dirs:
+        info = _scene_info(d)
+        sid = scene_number(info["scene_id"])
+        if sid in new:
+            raise TdofError(f"scene {info['scene_id']} is given twice ({new[sid][1]} and {d})")
+        scenes[sid] = read_scene(d)
+        sizes[sid] = check_scene_images(scenes[sid])
+        if (d / "models" / "models_info.json").exists():
+            _check_labels(d, scenes[sid], read_models_info(d / "models"))
+        new[sid] = (info, d)
+    return new, sizes, scenes
+
+
 def _file_hash(p: Path) -> str:
     return hashlib.sha256(read_bytes(p, "model file")).hexdigest()
 
@@ -90,6 +175,8 @@ def _plan_models(sources: list[Path], sub: str, out: Path, keep: bool) -> tuple[
             if not ply.exists():
                 raise TdofError(f"models_info.json lists object {obj_id} but {ply.name} is missing", d / sub)
             h = _file_hash(ply)
+            if obj_id not in seen:
+                _check_model_file(ply, obj_id, entry, d / sub / "models_info.json")
             if obj_id in seen and seen[obj_id][0] != h:
                 raise TdofError(f"object {obj_id} has a different model in {seen[obj_id][1]} and {d}: one object "
                                 "must keep one model across scenes (annotate with --models)", d / sub)
@@ -175,15 +262,7 @@ def build_dataset(scene_dirs: list[str | Path], out: str | Path, show_progress: 
     dirs = _scene_folders(scene_dirs, out)
 
     # read and check every input
-    new: dict[int, tuple[dict, Path]] = {}
-    sizes: dict[int, tuple[int, int]] = {}
-    for d in dirs:
-        info = _scene_info(d)
-        sid = scene_number(info["scene_id"])
-        if sid in new:
-            raise TdofError(f"scene {info['scene_id']} is given twice ({new[sid][1]} and {d})")
-        sizes[sid] = check_scene_images(read_scene(d))  # JSON files agree; every image is a PNG of its kind
-        new[sid] = (info, d)
+    new, sizes, _ = _read_scenes(dirs)
 
     # what is in --out, and what this build makes of it
     existing = _dataset_scenes(out)
@@ -462,17 +541,7 @@ def build_bop_dataset(scene_dirs: list[str | Path], out: str | Path, split: str,
         raise TdofError(f"--layout bop writes one protocol: --split must be one of {', '.join(PROTOCOLS)}, "
                         f"got '{split}'")
     dirs = _scene_folders(scene_dirs, out)
-    new: dict[int, tuple[dict, Path]] = {}
-    sizes: dict[int, tuple[int, int]] = {}
-    scenes = {}
-    for d in dirs:
-        info = _scene_info(d)
-        sid = scene_number(info["scene_id"])
-        if sid in new:
-            raise TdofError(f"scene {info['scene_id']} is given twice ({new[sid][1]} and {d})")
-        scenes[sid] = read_scene(d)
-        sizes[sid] = check_scene_images(scenes[sid])
-        new[sid] = (info, d)
+    new, sizes, scenes = _read_scenes(dirs)
     first = min(new)
     for sid, hw in sizes.items():
         if hw != sizes[first]:

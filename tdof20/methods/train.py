@@ -71,6 +71,7 @@ from tdof20.progress import console, progress as progress_bar
 
 LR_SCHEDULES = ("cosine", "step")
 CHECKPOINT = "last.pt"
+RUN_VERSION = 2  # config.json's "version": what this tdof20 writes and the newest it reads
 CONFIG = "config.json"
 
 
@@ -236,6 +237,10 @@ def read_run_config(run_dir: str | Path, advice: str = "") -> dict:
     if not isinstance(config, dict) or not isinstance(config.get("method"), str):
         raise TdofError(f"not a training run's {CONFIG} (it names no method){advice}", path)
     run_method(config, path)
+    version = config.get("version", 1)  # runs from before the field are version 1
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= RUN_VERSION:
+        raise TdofError(f"is a run of version {version!r}; this tdof20 reads versions 1..{RUN_VERSION} (a newer "
+                        f"tdof20 wrote it: update tdof20){advice}", path)
     missing = [k for k in RUN_KEYS if k not in config]
     if "method_config" not in config:
         if isinstance(config.get("network"), dict):
@@ -823,7 +828,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                        weight_decay=weight_decay, amp=use_amp, num_workers=num_workers, max_steps=max_steps,
                        seed=seed, backbone_weights=None if backbone_weights is None else str(backbone_weights),
                        world_size=world, device=str(dev))
-        config = {"method": m.name, "version": 2, "method_config": m.config_to_data(cfg), "meta": _meta_json(meta),
+        config = {"method": m.name, "version": RUN_VERSION, "method_config": m.config_to_data(cfg), "meta": _meta_json(meta),
                   "input": m.inputs, "image_size": list(image_size), "depth_mode": depth_mode_of(cfg), "split": split,
                   "part": part, "images_sha256": images_digest(subset),
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),

@@ -404,15 +404,35 @@ def object_by_name(name: str) -> ObjectModel:
 
 def export_models(out_dir: str | Path, obj_ids=None) -> Path:
     """Write a BOP ``models`` folder: ``obj_{id:06d}.ply`` (binary PLY, mm, with vertex normals)
-    and ``models_info.json``; every file is written atomically. Returns the folder."""
+    and ``models_info.json``; every file is written atomically. Returns the folder.
+
+    A folder holding an earlier export keeps the objects it has (their entries join the new ones);
+    a models_info.json of other models (an entry the catalog does not write) is refused before
+    anything is written, since its models would be overwritten."""
+    import json
+
+    from tdof20.errors import TdofError
+    from tdof20.formats.io import read_json
+
     out = Path(out_dir)
     ids = object_ids() if obj_ids is None else list(obj_ids)
     models = [get_object(i) for i in ids]  # unknown ids raise before anything is written
-    out.mkdir(parents=True, exist_ok=True)
     info = {}
+    old = out / "models_info.json"
+    if old.exists():
+        data = read_json(old)
+        for k, e in (data.items() if isinstance(data, dict) else [(None, data)]):
+            ours = k is not None and k.isdigit() and int(k) in object_ids() and \
+                json.loads(json.dumps(get_object(int(k)).models_info())) == e
+            if not ours:
+                raise TdofError("holds models_info.json of other models (" + (f"object {k}'s entry is not the "
+                                "catalog's" if k is not None else "not a JSON object") + "): export into another "
+                                "folder", old)
+        info.update(data)
+    out.mkdir(parents=True, exist_ok=True)
     for m in models:
         tm = m.to_trimesh()
         write_model_mesh(model_path(out, m.obj_id), tm.vertices, tm.faces)
         info[str(m.obj_id)] = m.models_info()
-    write_json(out / "models_info.json", info)
+    write_json(out / "models_info.json", dict(sorted(info.items(), key=lambda kv: int(kv[0]))))
     return out
