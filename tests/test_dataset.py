@@ -133,9 +133,11 @@ def test_build_refuses_conflicts(labelled, tmp_path):
     ply = other / "models" / "obj_000003.ply"
     if not ply.exists():  # multi/08 may not hold object 3: give it a conflicting copy of another
         ply = sorted((other / "models").glob("*.ply"))[0]
-    data = bytearray(ply.read_bytes())
-    data[-5] ^= 0xFF
-    ply.write_bytes(bytes(data))
+    from tdof20.formats.bop import read_model_mesh, write_model_mesh
+
+    V, F = read_model_mesh(ply)
+    V[0] += 0.5  # another model of the same object, sound and of the same size
+    write_model_mesh(ply, V, F)
     shutil.copytree(scenes[1], tmp_path / "m08b")
     (tmp_path / "m08b" / "scene_info.json").write_text(
         (tmp_path / "m08b" / "scene_info.json").read_text().replace("multi/08", "multi/09"))

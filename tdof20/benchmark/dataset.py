@@ -65,10 +65,12 @@ def _scene_info(scene_dir: Path) -> dict:
 #: box diagonal is outside [lo, hi] x its models_info diameter is in other units than its entry
 #: (the diagonal of a box around a set of diameter d is between d and sqrt(3) d; the margins take
 #: a diameter measured by another tool or over another sampling)
-METRES_BELOW_MM = 10.0
+METRES_BELOW_MM = 10.0  # translations (median |t|): nothing is posed 1 cm from the camera
+DIAMETER_METRES_BELOW_MM = 2.0  # diameters: an object of 2 m or less written in metres
 MODEL_EXTENT_RATIO = (0.5, 3.0)
-#: the median depth x depth_scale at an image's labelled objects, over their median distance, must
-#: lie in this range (a depth_scale giving metres or micrometres is 1000 times off)
+#: the median valid depth x depth_scale of the first labelled image, over its objects' median
+#: distance, must lie in this range (the table and room are near the objects; a depth_scale giving
+#: metres or micrometres is 1000 times off)
 DEPTH_RATIO = (0.2, 5.0)
 
 
@@ -79,7 +81,7 @@ def _check_model_file(ply: Path, obj_id: int, entry: dict, info_path: Path) -> N
     from tdof20.formats.bop import read_model_mesh
 
     diameter = float(entry["diameter"])
-    if diameter < METRES_BELOW_MM:
+    if diameter < DIAMETER_METRES_BELOW_MM:
         raise TdofError(f"object {obj_id}: diameter {diameter:g} looks like metres: models_info.json is in "
                         "millimetres", info_path)
     V, _ = read_model_mesh(ply, need_faces=False)
