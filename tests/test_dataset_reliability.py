@@ -273,7 +273,7 @@ def test_labels_and_models_are_checked_before_anything_is_copied(scenes, tmp_pat
         m = trimesh.load(ply, process=False)
         m.apply_scale(0.001)
         ply.write_bytes(trimesh.exchange.ply.export_ply(m, encoding="binary"))
-        bad, why = ply, "the model spans "
+        bad, why = ply, "the model is "
     out = tmp_path / "R"
     args = ["dataset", "build", scene, "--out", out] + (["--layout", "bop", "--split", "hard"] if layout == "bop" else [])
     rc, msg = cli(capsys, *args)

@@ -830,14 +830,15 @@ def write_models(models: dict[int, BuiltModel], out_dir: str | Path, n_samples: 
     return out
 
 
-def load_models(models_dir: str | Path, obj_ids=None) -> dict[int, tuple[np.ndarray, np.ndarray, dict]]:
+def load_models(models_dir: str | Path, obj_ids=None, need_faces: bool = True) -> dict[int, tuple[np.ndarray, np.ndarray, dict]]:
     """A user's (or a single-object scene's) BOP models folder -> {obj_id: (V (n,3) mm, F (m,3),
     models_info entry)}, every object of ``obj_ids`` (default: all of models_info.json).
 
     Checked before anything is used: the folder and models_info.json exist, every object has a
     readable triangle mesh, the mesh is in millimetres (a model under 5 mm across, or one a
     thousand times smaller than its models_info diameter, is in metres) and its diameter agrees
-    with models_info.json within 5 %. Every problem raises TdofError naming the file."""
+    with models_info.json within 5 %. Every problem raises TdofError naming the file.
+    ``need_faces=False`` takes point clouds too (a BOP models_eval/ folder)."""
     from tdof20.formats.bop import MODELS_INFO, model_path, read_model_mesh, read_models_info
 
     d = Path(models_dir)
@@ -854,7 +855,7 @@ def load_models(models_dir: str | Path, obj_ids=None) -> dict[int, tuple[np.ndar
     out = {}
     for o in ids:
         p = model_path(d, o)
-        V, F = read_model_mesh(p)
+        V, F = read_model_mesh(p, need_faces=need_faces)
         dia = float(mesh_diameter(V)) if len(V) >= 4 else float(np.ptp(V, axis=0).max())
         info_dia = float(infos[o]["diameter"])
         if info_dia < _METRES_BELOW_MM:

@@ -61,36 +61,10 @@ def _scene_info(scene_dir: Path) -> dict:
     return info
 
 
-#: a label whose translations or diameters fall under these (mm) is in metres; a model whose
-#: box diagonal is outside [lo, hi] x its models_info diameter is in other units than its entry
-#: (the diagonal of a box around a set of diameter d is between d and sqrt(3) d; the margins take
-#: a diameter measured by another tool or over another sampling)
-METRES_BELOW_MM = 10.0  # translations (median |t|): nothing is posed 1 cm from the camera
-DIAMETER_METRES_BELOW_MM = 2.0  # diameters: an object of 2 m or less written in metres
-MODEL_EXTENT_RATIO = (0.5, 3.0)
 #: the median valid depth x depth_scale of the first labelled image, over its objects' median
 #: distance, must lie in this range (the table and room are near the objects; a depth_scale giving
 #: metres or micrometres is 1000 times off)
 DEPTH_RATIO = (0.2, 5.0)
-
-
-def _check_model_file(ply: Path, obj_id: int, entry: dict, info_path: Path) -> None:
-    """The model decodes (a mesh or points, finite) and its size agrees with models_info.json."""
-    import numpy as np
-
-    from tdof20.formats.bop import read_model_mesh
-
-    diameter = float(entry["diameter"])
-    if diameter < DIAMETER_METRES_BELOW_MM:
-        raise TdofError(f"object {obj_id}: diameter {diameter:g} looks like metres: models_info.json is in "
-                        "millimetres", info_path)
-    V, _ = read_model_mesh(ply, need_faces=False)
-    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
-    lo, hi = MODEL_EXTENT_RATIO
-    if not lo * diameter <= diag <= hi * diameter:
-        raise TdofError(f"the model spans {diag:.4g} (its box's diagonal) but models_info.json gives object {obj_id} "
-                        f"a diameter of {diameter:g} mm: the model and its entry are in different units "
-                        "(the model must be in millimetres)", ply)
 
 
 def _check_labels(d: Path, scene, models: dict[int, dict]) -> None:
@@ -98,19 +72,19 @@ def _check_labels(d: Path, scene, models: dict[int, dict]) -> None:
     translation in millimetres, a depth_scale that gives millimetres. A TdofError names the file."""
     import numpy as np
 
-    from tdof20.formats.bop import SCENE_CAMERA, SCENE_GT
+    from tdof20.formats.bop import SCENE_CAMERA, SCENE_GT, median_distance_if_metres
 
-    dists = []
+    ts = []
     for im_id, insts in sorted(scene.gt.items()):
         for gt_id, e in enumerate(insts):
             if int(e["obj_id"]) not in models:
                 raise TdofError(f"image {im_id} instance {gt_id} is object {e['obj_id']}, which the scene's "
                                 f"models/models_info.json does not list (objects {sorted(models)})", d / SCENE_GT)
-            dists.append(float(np.linalg.norm(e["cam_t_m2c"])))
-    if not dists:
+            ts.append(e["cam_t_m2c"])
+    if not ts:
         return
-    med = float(np.median(dists))
-    if med < METRES_BELOW_MM:
+    med = median_distance_if_metres(np.asarray(ts))
+    if med is not None:
         raise TdofError(f"the objects lie {med:.4g} from the camera in the median: cam_t_m2c looks like metres "
                         "(it must be in millimetres)", d / SCENE_GT)
     # the depth's scale, on the first labelled image: depth at the objects against their distance
@@ -158,7 +132,10 @@ def _names(ids) -> str:
 
 def _plan_models(sources: list[Path], sub: str, out: Path, keep: bool) -> tuple[dict[int, dict], list[tuple[Path, Path]]]:
     """The models of ``out/sub`` after the build: (models_info entries, [(model file to copy, destination)]).
-    One object must keep one model across scenes (and, with ``keep``, the dataset's own)."""
+    One object must keep one model across scenes (and, with ``keep``, the dataset's own); a model
+    taken is checked as annotate --models checks a user's (modelbuild.load_models)."""
+    from tdof20.annotate.modelbuild import load_models
+
     seen: dict[int, tuple[str, str]] = {}
     infos: dict[int, dict] = {}
     copies: list[tuple[Path, Path]] = []
@@ -172,13 +149,13 @@ def _plan_models(sources: list[Path], sub: str, out: Path, keep: bool) -> tuple[
             if sub == "models":
                 raise TdofError("has no models/ (a BOP models folder with models_info.json)", d)
             continue
-        for obj_id, entry in read_models_info(d / sub).items():
+        entries = read_models_info(d / sub)
+        fresh = [o for o in entries if o not in seen]
+        for obj_id, entry in entries.items():
             ply = d / sub / f"obj_{obj_id:06d}.ply"
             if not ply.exists():
                 raise TdofError(f"models_info.json lists object {obj_id} but {ply.name} is missing", d / sub)
             h = _file_hash(ply)
-            if obj_id not in seen:
-                _check_model_file(ply, obj_id, entry, d / sub / "models_info.json")
             if obj_id in seen and seen[obj_id][0] != h:
                 raise TdofError(f"object {obj_id} has a different model in {seen[obj_id][1]} and {d}: one object "
                                 "must keep one model across scenes (annotate with --models)", d / sub)
@@ -186,6 +163,8 @@ def _plan_models(sources: list[Path], sub: str, out: Path, keep: bool) -> tuple[
                 seen[obj_id] = (h, str(d))
                 infos[obj_id] = entry
                 copies.append((ply, out / sub / ply.name))
+        # the models this build takes from d: each decodes, in mm, of its models_info diameter
+        load_models(d / sub, fresh, need_faces=sub == "models")
     return infos, copies
 
 

@@ -597,6 +597,21 @@ def read_models_info(path: str | Path) -> dict[int, dict]:
 # ---------------------------------------------------------------------------------------------
 # model meshes (obj_{id:06d}.ply)
 # ---------------------------------------------------------------------------------------------
+#: poses whose median |t| is under this (mm) were written in metres: nothing is posed 1 cm from
+#: the camera (dataset build and the training shards refuse them)
+METRES_BELOW_MM = 10.0
+
+
+def median_distance_if_metres(t: np.ndarray) -> float | None:
+    """The median |t| (mm) of translations ``t`` (N,3) when it is under METRES_BELOW_MM — the poses
+    are in metres —, else None (also for none)."""
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    if not len(t):
+        return None
+    med = float(np.median(np.linalg.norm(t, axis=1)))
+    return med if med < METRES_BELOW_MM else None
+
+
 def model_path(models_dir: str | Path, obj_id: int) -> Path:
     """``<models_dir>/obj_{obj_id:06d}.ply``."""
     return Path(models_dir) / f"obj_{int(obj_id):06d}.ply"

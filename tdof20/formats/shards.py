@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.bop import read_models_info, read_scene
+from tdof20.formats.bop import METRES_BELOW_MM, median_distance_if_metres, read_models_info, read_scene
 from tdof20.formats.io import check_output_file, read_png
 
 #: the per-image arrays and their types (what pack_shard writes and ShardDataset accepts)
@@ -155,9 +155,10 @@ class ShardDataset:
         used = obj > 0
         if not (np.isfinite(R[used]).all() and np.isfinite(t[used]).all()):
             raise TdofError("holds a pose that is not finite (NaN or inf in R or t)", self.path)
-        if used.any() and float(np.median(np.linalg.norm(t[used], axis=-1))) < 1.0:
-            raise TdofError("translations look like metres (median |t| under 1 mm): t must be in millimetres",
-                            self.path)
+        med = median_distance_if_metres(t[used])
+        if med is not None:
+            raise TdofError(f"translations look like metres (median |t| {med:.4g}, under {METRES_BELOW_MM:g} mm): t "
+                            "must be in millimetres", self.path)
         self._f = None
 
     def __len__(self) -> int:
