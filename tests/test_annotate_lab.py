@@ -74,6 +74,20 @@ def test_a_clockwise_table_without_a_recorded_direction_is_detected(tmp_path):
     assert sum(not f["flagged"] for f in reg["frames"]) >= 10
 
 
+@pytest.mark.parametrize("direction", ["cw", "ccw"])
+def test_a_round_cup_without_a_recorded_direction_registers_both_ways(tmp_path, direction):
+    """One round cup: its turn does not tell the direction (the depth barely changes), so arm 0 is
+    registered both ways and the way with fewer frames off the turntable prior is kept (it used
+    to be ccw, flagging most frames of a clockwise table)."""
+    raw = _capture(tmp_path / "raw", scene="single/water_cup_270", arms=1, direction=direction,
+                   record_direction=False, size=dict(width=240, height=180))
+    _annotate(raw, tmp_path / "scene", stages="register")
+    reg = read_json(tmp_path / "scene" / "work" / "registration.json")
+    assert reg["turntable"]["direction"] == direction
+    assert reg["turntable"]["source"].startswith("not told by the objects' turn (too round); arm 0 registered both ways")
+    assert sum(not f["flagged"] for f in reg["frames"]) >= 10
+
+
 def test_a_direction_or_step_angle_the_data_contradicts_is_refused(tmp_path):
     raw = _capture(tmp_path / "raw", arms=1, direction="cw")
     _edit_session(raw, lambda d: d["turntable"].update(direction="ccw"))

@@ -831,12 +831,28 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     sign = -1.0 if direction == "cw" else 1.0
     t_check = time.perf_counter()
     measured: dict[int, dict] = {}     # the check's plane and motion per arm, reused by the arm's registration
-    checked = check_turntable(session, cfg, sign, recorded, measured)
+    outcome: dict = {}
+    checked = check_turntable(session, cfg, sign, recorded, measured, outcome)
     turntable = {"direction": "ccw" if checked > 0 else "cw",
                  "source": "session.json" if recorded else ("detected from the opaque depth" if checked != sign
-                                                            else "default (ccw), confirmed or not contradicted by "
-                                                                 "the opaque depth")}
+                                                            else "default (ccw), confirmed by the opaque depth")}
     sign = checked
+    results: dict[int, tuple] = {}
+    if not recorded and not outcome.get("told"):
+        # the objects' turn does not tell the direction (one round object near the axis): arm 0
+        # is registered both ways, and the way with fewer frames off the turntable prior is kept
+        tried = {}
+        with _progress(progress, unit="icp") as prog:
+            for s in (1.0, -1.0):
+                ta = time.perf_counter()
+                A, poses, fr, cloud = _register_arm(session, cfg, 0, s, prog, measured.get(0))
+                tried[s] = (A, poses, fr, cloud, time.perf_counter() - ta)
+        off = {s: sum(f.flagged for f in tried[s][2]) for s in tried}
+        sign = -1.0 if off[-1.0] < off[1.0] else 1.0
+        results[0] = tried[sign]
+        turntable = {"direction": "ccw" if sign > 0 else "cw",
+                     "source": f"not told by the objects' turn (too round); arm 0 registered both ways: "
+                               f"{off[1.0]} frames flagged counter-clockwise, {off[-1.0]} clockwise"}
     timing_check = round(time.perf_counter() - t_check, 3)
     timing: dict[str, float] = {"turntable_check": timing_check}
     arms: list[ArmRegistration] = []
@@ -846,10 +862,10 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     T_base_cam0 = info.T_base_cam(0)
     from tdof20.annotate.executors import resolve_workers, run_chunks
 
-    n_workers = min(resolve_workers(workers), info.n_arms)
-    results: dict[int, tuple] = {}
+    todo = [a for a in range(info.n_arms) if a not in results]
+    n_workers = min(resolve_workers(workers), len(todo))
     if n_workers > 1:   # one arm per worker process; a failing arm raises its TdofError here
-        for arm, A, poses, fr, P, N, dt in run_chunks(_ArmJob(session.path, cfg, sign, measured), range(info.n_arms),
+        for arm, A, poses, fr, P, N, dt in run_chunks(_ArmJob(session.path, cfg, sign, measured), todo,
                                                       workers=n_workers, progress=progress,
                                                       description="register (arm positions)", unit="arm"):
             results[arm] = (A, poses, fr, _cloud(P, N), dt)

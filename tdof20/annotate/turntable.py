@@ -360,7 +360,7 @@ def measure_arm(session: RawSession, cfg: RegistrationConfig, arm: int, sign: fl
 
 
 def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, recorded: bool,
-                    measured: dict | None = None) -> float:
+                    measured: dict | None = None, outcome: dict | None = None) -> float:
     """The turning direction and step angle the opaque depth shows, against session.json: returns
     the sign to use (+1 counter-clockwise about the table normal towards the camera, -1
     clockwise). Per pair of sampled frames of the first arm position whose moving part pins the
@@ -379,7 +379,9 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
     would measure again — {"steps", "n", "d", "sign", "pairs" (those ``sampled_motion`` returns
     without ``check``), "moving"}; :func:`~tdof20.annotate.registration.register_session` hands
     it to the arm's registration. (Measuring the arms on worker processes side by side was tried:
-    no faster on 2 cores, the early stop then saves nothing and each worker opens the session.)"""
+    no faster on 2 cores, the early stop then saves nothing and each worker opens the session.)
+    ``outcome`` (a dict, filled): {"told": whether the data decided the direction (two or more
+    pairs, a majority, for the nominal or the reversed turn)}."""
     info = session.info
     src = session.path / "session.json"
     votes: list[tuple[str, int, dict]] = []
@@ -409,6 +411,8 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
             break   # the arms so far agree: the others would only cost time
     names = [v for v, _, _ in votes]
     verdict = max(("nominal", "reversed", "other"), key=names.count) if votes else "nominal"
+    if outcome is not None:
+        outcome["told"] = verdict != "other" and names.count(verdict) >= 2 and names.count(verdict) * 2 > len(names)
     if verdict == "nominal" or names.count(verdict) < 2 or names.count(verdict) * 2 <= len(names):
         return sign
     if verdict == "other":   # another step angle: the pairs must agree on it
