@@ -45,4 +45,8 @@ def progress(enabled: bool = True, unit: str = "fr") -> Iterator[Progress | _Qui
     cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), RateColumn(unit),
             TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
     with Progress(*cols, console=console) as p:
-        yield p
+        try:
+            yield p
+        except Exception:  # a failed job's bar is cleared: its one-line error stands alone (an
+            p.live.transient = True  # interrupted one keeps it: where it stopped)
+            raise

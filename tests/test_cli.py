@@ -293,3 +293,20 @@ def test_dataset_commands(tmp_path):
     one_line_error(run("dataset", "pack", tmp_path / "root", "--split", "medium", "--part", "test",
                        "--out", tmp_path / "u.h5"), "medium")
     one_line_error(run("dataset", "stats", tmp_path / "nothing"), str(tmp_path / "nothing"), "no such dataset folder")
+
+
+def test_a_failed_jobs_progress_bar_is_cleared_before_its_error(capsys):
+    """A job that fails leaves its one-line error, not a half-done bar above it; a finished job's
+    bar stays (a file or pipe sees its last state)."""
+    from tdof20.progress import progress
+
+    with pytest.raises(RuntimeError):
+        with progress(True, unit="img") as bar:
+            t = bar.add_task("packing", total=10)
+            bar.advance(t, 3)
+            raise RuntimeError("a truncated image")
+    assert "packing" not in capsys.readouterr().err
+    with progress(True, unit="img") as bar:
+        t = bar.add_task("packing", total=2)
+        bar.advance(t, 2)
+    assert "packing" in capsys.readouterr().err
