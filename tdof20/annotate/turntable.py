@@ -411,9 +411,10 @@ def check_turntable(session: RawSession, cfg: RegistrationConfig, sign: float, r
             break   # the arms so far agree: the others would only cost time
     names = [v for v, _, _ in votes]
     verdict = max(("nominal", "reversed", "other"), key=names.count) if votes else "nominal"
+    decided = names.count(verdict) >= 2 and names.count(verdict) * 2 > len(names)
     if outcome is not None:
-        outcome["told"] = verdict != "other" and names.count(verdict) >= 2 and names.count(verdict) * 2 > len(names)
-    if verdict == "nominal" or names.count(verdict) < 2 or names.count(verdict) * 2 <= len(names):
+        outcome["told"] = decided and verdict != "other"
+    if verdict == "nominal" or not decided:
         return sign
     if verdict == "other":   # another step angle: the pairs must agree on it
         per_step = np.array([abs(p["free"][0]) / (p["k1"] - p["k0"]) for v, _, p in votes if v == "other"])

@@ -337,11 +337,11 @@ class Dataset:
                 frames = [(int(s), int(i)) for s, ims in m.items() for i in ims]
             except (TypeError, ValueError):
                 raise TdofError("must hold a JSON object {\"<scene_id>\": [im_id, ...]}", path) from None
-            unknown = sorted({s for s, _ in frames} - set(self.scene_ids(split)))
+            held = self.scene_ids(split)
+            unknown = sorted({s for s, _ in frames} - set(held))
             if unknown:
                 raise TdofError(f"names scene{'s' if len(unknown) > 1 else ''} {', '.join(map(str, unknown))}, which "
-                                f"the dataset does not hold (scenes/: {', '.join(map(str, self.scene_ids(split)))})",
-                                path)
+                                f"the dataset does not hold (scenes/: {', '.join(map(str, held))})", path)
             return frames
         if part == "test" and split == self.targets_split() and (self.root / BOP_TARGETS).is_file():
             seen = dict.fromkeys((int(t["scene_id"]), int(t["im_id"])) for t in self.read_targets()

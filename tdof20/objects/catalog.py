@@ -421,13 +421,14 @@ def export_models(out_dir: str | Path, obj_ids=None) -> Path:
     old = out / "models_info.json"
     if old.exists():
         data = read_json(old)
-        for k, e in (data.items() if isinstance(data, dict) else [(None, data)]):
-            ours = k is not None and k.isdigit() and int(k) in object_ids() and \
-                json.loads(json.dumps(get_object(int(k)).models_info())) == e
-            if not ours:
-                raise TdofError("holds models_info.json of other models (" + (f"object {k}'s entry is not the "
-                                "catalog's" if k is not None else "not a JSON object") + "): export into another "
-                                "folder", old)
+        if not isinstance(data, dict):
+            raise TdofError("holds models_info.json of other models (not a JSON object): export into another "
+                            "folder", old)
+        catalog = {str(i): json.loads(json.dumps(get_object(i).models_info())) for i in object_ids()}
+        foreign = [k for k, e in data.items() if catalog.get(k) != e]
+        if foreign:
+            raise TdofError(f"holds models_info.json of other models (object {foreign[0]}'s entry is not the "
+                            "catalog's): export into another folder", old)
         info.update(data)
     out.mkdir(parents=True, exist_ok=True)
     for m in models:
