@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tdof20.benchmark.dataset import build_dataset
-from tdof20.benchmark.scoring import score
-from tdof20.benchmark.validation import part_images, write_val_targets
+from tdof20.dataset.build import build_dataset
+from tdof20.scoring.scoring import score
+from tdof20.dataset.validation import part_images, write_val_targets
 from tdof20.capture import run_capture, sim_config
 from tdof20.methods.data import DEPTH_MODES, VECTOR_ORIGINS, HFFTransform, SceneImages, keypoint_table, \
     keypoints_from_json

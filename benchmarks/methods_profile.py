@@ -48,7 +48,7 @@ def _frame_seconds(cfg) -> tuple[float, int]:
     import tempfile
     from pathlib import Path
 
-    from tdof20.benchmark.reproduce import _sim_dataset
+    from tdof20.experiments.reproduce import _sim_dataset
 
     def cpu() -> float:
         a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -142,7 +142,7 @@ def estimate_preset(preset: str, tflops: list[float], workers: int | None = None
     reused instead of measured again."""
     import os
 
-    from tdof20.benchmark.reproduce import estimate, make_config
+    from tdof20.experiments.reproduce import estimate, make_config
     from tdof20.methods.registry import get_method
 
     torch.set_num_threads(1)

@@ -84,8 +84,8 @@ def make_workload(out: Path, n_images: int, seed: int = 0) -> dict:
     from concurrent.futures import ThreadPoolExecutor
     from scipy.spatial.transform import Rotation
 
-    from tdof20.benchmark import metrics as M
-    from tdof20.benchmark.results import write_results_csv
+    from tdof20.scoring import metrics as M
+    from tdof20.dataset.results import write_results_csv
     from tdof20.formats.bop import dumps_bop_json, write_models_info
     from tdof20.formats.io import atomic_write_bytes, write_json
     from tdof20.objects import export_models, get_object
@@ -174,7 +174,7 @@ def make_workload(out: Path, n_images: int, seed: int = 0) -> dict:
 def run_score(root: Path, metrics: str) -> dict:
     """In this (fresh) process: time evaluate() with ``metrics`` and report its peak memory."""
     t0, c0 = time.perf_counter(), time.process_time()
-    from tdof20.benchmark.scoring import evaluate
+    from tdof20.scoring.scoring import evaluate
 
     ev = evaluate(root / "synthetic_tdof20-hard.csv", root, split="hard", metrics=metrics)
     summ = ev.summary()
@@ -239,8 +239,8 @@ def straightforward(root: Path, subset: int, seed: int = 1) -> dict:
 def _matched_singles(root: Path):
     """(results, dataset view, [(target, row, position within its object)]) for every target with
     an estimate, in the scorer's order (single-instance targets: their object's instance order)."""
-    from tdof20.benchmark.results import read_results
-    from tdof20.benchmark.scoring import DatasetView, _group_rows
+    from tdof20.dataset.results import read_results
+    from tdof20.scoring.scoring import DatasetView, _group_rows
 
     ds = DatasetView(root)
     res = read_results(root / "synthetic_tdof20-hard.csv")
@@ -262,7 +262,7 @@ def straightforward_bop(root: Path, subset: int, seed: int = 2) -> dict:
     estimated and the ground-truth depth rendered over the full frame (the same open3d ray
     casting), VSD from them; MSSD and MSPD as a loop over every symmetry transformation over every
     model point. Compares every decision with the fast run's."""
-    from tdof20.benchmark import metrics as M
+    from tdof20.scoring import metrics as M
 
     res, ds, matched = _matched_singles(root)
     fast = np.load(root / "fast_bop.npz")

@@ -262,7 +262,7 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
 def sim_scenes() -> None:
     """List the 40 TDoF20 scenes of the simulator (single/<class>, multi/00..19) with their numeric (BOP)
     scene ids, objects and stickers; TDoF20-hard tests on multi/02, 08, 09, 10, 11, 15."""
-    from tdof20.benchmark.splits import HARD_TEST_MULTI
+    from tdof20.dataset.splits import HARD_TEST_MULTI
     from tdof20.objects import object_names
     from tdof20.sim.scenes import get_scene, scene_ids
 
@@ -340,7 +340,7 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
                   split: Optional[str] = typer.Option(None, "--split", help="with --layout bop: the protocol (simple "
                                                       "or hard) whose train and test parts become train/ and test/")) -> None:
     """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
-    from tdof20.benchmark.dataset import build_bop_dataset, build_dataset
+    from tdof20.dataset.build import build_bop_dataset, build_dataset
 
     if layout not in ("tdof20", "bop"):
         raise TdofError(f"--layout must be tdof20 or bop, got '{layout}'")
@@ -365,7 +365,7 @@ def dataset_stats(root: Path = typer.Argument(..., help="dataset root"),
     """Counts per split, scene and object (the paper's figures beside the splits)."""
     import json
 
-    from tdof20.benchmark.dataset import stats
+    from tdof20.dataset.build import stats
 
     s = stats(root)
     if json_out:
@@ -382,7 +382,7 @@ def dataset_pack(root: Path = typer.Argument(..., help="dataset root"),
                  cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
                                                           "lacks is rendered to (default ROOT/.cache)")) -> None:
     """Write what training reads (colour, depths, masks, poses, camera) into one HDF5 file."""
-    from tdof20.benchmark.dataset import pack
+    from tdof20.dataset.build import pack
 
     pack(root, split, part, out, cache_dir=cache_dir)
     console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)", markup=False)
@@ -399,7 +399,7 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
                                                                "separated: single/<class>, multi/NN")) -> None:
     """Import the released TDoF20 (its documented layout) as a tdof20 dataset: released splits, depth
     modes raw/stabilized/restored, masks, models in mm, the released keypoints (docs/tdof20_release.md)."""
-    from tdof20.benchmark.importer import import_tdof20
+    from tdof20.dataset.importer import import_tdof20
 
     if out is None and not check:
         raise TdofError("give --out ROOT to import, or --check to only read and check the release")
@@ -431,7 +431,7 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
 
 
 def _print_stats(s: dict) -> None:
-    from tdof20.benchmark.splits import PAPER_HARD, PAPER_SIMPLE
+    from tdof20.dataset.splits import PAPER_HARD, PAPER_SIMPLE
 
     t = Table(title=f"{s.get('layout', 'tdof20')} layout: {s['scenes']} scenes, {s['images']} images")
     sp = s["splits"]
@@ -639,12 +639,12 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
                     ) -> None:
     """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC, and BOP19's VSD, MSSD,
     MSPD and AR; per object, per scene and mean."""
-    from tdof20.benchmark.scoring import score_command
+    from tdof20.scoring.scoring import score_command
 
     if part not in ("test", "val"):
         raise TdofError(f"--part must be test or val, got '{part}'")
     if part == "val":
-        from tdof20.benchmark.validation import write_val_targets
+        from tdof20.dataset.validation import write_val_targets
 
         if split is None or targets is not None:
             raise TdofError("--part val scores against the validation targets of --split: give --split, not --targets")
@@ -698,7 +698,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
     score HFF6DoF and PVNet side by side, OUT/report.md (about 3 minutes measured on 2 idle CPU
     cores with the defaults; a rerun resumes)."""
-    from tdof20.demo import parse_methods, run_demo
+    from tdof20.experiments.demo import parse_methods, run_demo
 
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:
@@ -730,7 +730,7 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
     both protocols (on the train part minus its validation part), choose epochs and options on
     validation, predict and score the test part, profile, OUT/tables/tables.md (+ CSV, JSON,
     plots); resumable. See docs/reproduce.md."""
-    from tdof20.benchmark.reproduce import reproduce
+    from tdof20.experiments.reproduce import reproduce
 
     reproduce(out, preset=preset, config=config, dataset=dataset)
 

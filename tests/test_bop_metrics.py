@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tdof20.benchmark import metrics as M
-from tdof20.benchmark import report
-from tdof20.benchmark.results import write_results_csv
-from tdof20.benchmark.scoring import evaluate, score, score_command
+from tdof20.scoring import metrics as M
+from tdof20.scoring import report
+from tdof20.dataset.results import write_results_csv
+from tdof20.scoring.scoring import evaluate, score, score_command
 from tdof20.errors import TdofError
 from tdof20.formats import BopSceneWriter, write_json
 from tdof20.o3d import o3d

@@ -236,7 +236,7 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     one_line_error(run("demo", "--out", tmp_path / "d2", "--scenes", "multi/08"), "single-object")
     one_line_error(run("demo", "--out", tmp_path / "d3", "--scenes", "single/99"), "single/99")
     one_line_error(run("demo", "--out", tmp_path / "d4", "--step-deg", "60"), "--step-deg")
-    from tdof20.demo import run_demo
+    from tdof20.experiments.demo import run_demo
     from tdof20.errors import TdofError  # an unknown method: one line naming the known ones, nothing written
     with pytest.raises(TdofError, match=r"unknown method 'posecnn' \(known: hff6dof, pvnet"):
         run_demo(tmp_path / "d5", methods=("hff6dof", "posecnn"))

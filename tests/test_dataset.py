@@ -6,13 +6,13 @@ import shutil
 import numpy as np
 import pytest
 
-from tdof20.benchmark.dataset import build_dataset, pack, split_images, stats
-from tdof20.benchmark.splits import (HARD_TEST_MULTI, PAPER_HARD, PAPER_SIMPLE, part_of, scene_name,
+from tdof20.dataset.build import build_dataset, pack, split_images, stats
+from tdof20.dataset.splits import (HARD_TEST_MULTI, PAPER_HARD, PAPER_SIMPLE, part_of, scene_name,
                                      scene_number)
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import read_scene
-from tdof20.formats.shards import ShardDataset
+from tdof20.dataset.shards import ShardDataset
 from tdof20.sim.scenes import normalize_scene_id
 from tdof20.sim.truth import oracle_scene
 

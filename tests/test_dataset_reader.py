@@ -1,4 +1,4 @@
-"""The one dataset reader (tdof20.formats.dataset) on a standard-layout BOP dataset written by the
+"""The one dataset reader (tdof20.dataset.reader) on a standard-layout BOP dataset written by the
 independent fixture tests/fixtures/bop_standard.py (objects 1, 5 and 30; train_pbr and test split
 folders; models_eval; test_targets_bop19.json; no restored depth), and on a tdof20 dataset built
 with ``--layout bop``: stats, restored depth rendered once and cached, a few HFF6DoF steps,
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tdof20.errors import TdofError
-from tdof20.formats.dataset import NOT_A_DATASET, composite_model_depth, open_dataset
+from tdof20.dataset.reader import NOT_A_DATASET, composite_model_depth, open_dataset
 from tdof20.formats.io import read_png
 
 from fixtures.bop_standard import write_bop_dataset
@@ -84,7 +84,7 @@ def test_names_file_names_the_objects(bop, tmp_path):
 
 
 def test_stats_of_a_bop_dataset(bop, capsys):
-    from tdof20.benchmark.dataset import stats
+    from tdof20.dataset.build import stats
 
     st = stats(bop["root"])
     assert st["layout"] == "bop" and st["images"] == 8 and st["scenes"] == 2
@@ -164,7 +164,7 @@ def test_not_a_dataset_is_one_line_everywhere(tmp_path, capsys):
 
 
 def test_train_predict_score_on_a_bop_dataset_with_objects_1_5_30(bop, tmp_path):
-    from tdof20.benchmark.scoring import score
+    from tdof20.scoring.scoring import score
     from tdof20.methods.predict import predict
     from tdof20.methods.train import load_run, train
 
@@ -215,7 +215,7 @@ def test_predict_renders_restored_depth_into_a_cache_folder(bop, tmp_path):
 
 
 def test_score_command_names_the_bop_objects(bop, tmp_path, capsys):
-    from tdof20.formats.dataset import open_dataset as od
+    from tdof20.dataset.reader import open_dataset as od
 
     ds = od(bop["root"], "test")
     sid, im = ds.frames("test", "test")[0]
@@ -283,7 +283,7 @@ def _bop_json(path):
 
 @pytest.mark.parametrize("protocol", ["simple", "hard"])
 def test_layout_bop_reads_back_the_frames_and_poses(annotated, protocol, tmp_path, capsys):
-    from tdof20.benchmark.dataset import build_dataset, split_images
+    from tdof20.dataset.build import build_dataset, split_images
 
     base, scenes = annotated
     ours = base / "tdof20_ds"
@@ -319,7 +319,7 @@ def test_layout_bop_reads_back_the_frames_and_poses(annotated, protocol, tmp_pat
     assert targets == json.loads((ours / f"test_targets_{protocol}.json").read_text())
     assert json.loads((out / "camera.json").read_text())["width"] == 64
     # scoring against the BOP build with the ground truth is perfect
-    from tdof20.benchmark.scoring import score
+    from tdof20.scoring.scoring import score
     rows = []
     for t in targets:
         sc = ds.scene(t["scene_id"], "test")

@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tdof20.benchmark import dataset as dataset_mod
-from tdof20.benchmark.dataset import BUILD_MARKER, build_dataset, split_images
+from tdof20.dataset import build as dataset_mod
+from tdof20.dataset.build import BUILD_MARKER, build_dataset, split_images
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.sim.truth import oracle_scene
@@ -395,7 +395,7 @@ def test_a_splits_file_naming_an_unknown_scene_is_named(multi_only, tmp_path, ca
 
 # ------------------------------------------------------------------------------------- one reader
 def test_one_file_reader_names_the_file_and_the_problem(tmp_path):
-    from tdof20.benchmark.results import read_results
+    from tdof20.dataset.results import read_results
     from tdof20.formats import read_json, read_model_mesh, read_png
     from tdof20.formats.io import read_toml
 

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tdof20.benchmark import importer
-from tdof20.benchmark.importer import import_tdof20
+from tdof20.dataset import importer
+from tdof20.dataset.importer import import_tdof20
 from tdof20.errors import TdofError
 from tdof20.formats import read_json, read_png, read_scene
 from tdof20.formats.tdof20_release import load_pickle
@@ -117,7 +117,7 @@ def test_import_splits_poses_masks_depths_keypoints(tmp_path):
     assert "symmetries_discrete" in info_m["1"] and "symmetries_continuous" in info_m["2"]
     assert "symmetries_continuous" not in info_m["3"] and "symmetries_discrete" not in info_m["3"]
     # the dataset tools read it
-    from tdof20.benchmark.dataset import stats
+    from tdof20.dataset.build import stats
     st = stats(out)
     assert st["splits"]["simple_train"] == w["counts"]["train_data_list.txt"]
     assert st["splits"]["hard_test"] == w["counts"]["hard_test_data_list.txt"]
@@ -316,8 +316,8 @@ def test_imported_release_round_trip_stats_train_predict_score(tmp_path):
     """import -> stats equal the lists -> a few training steps -> predict -> score, on the fixture."""
     import csv
 
-    from tdof20.benchmark.dataset import stats
-    from tdof20.benchmark.scoring import score
+    from tdof20.dataset.build import stats
+    from tdof20.scoring.scoring import score
     from tdof20.methods.predict import predict
     from tdof20.methods.train import train
 
@@ -348,8 +348,8 @@ def test_reproduce_on_an_imported_release(tmp_path):
     only read (not a byte of it changes). Every method end to end: tests/test_reproduce.py."""
     import hashlib
 
-    from tdof20.benchmark.reproduce import reproduce
-    from tdof20.benchmark.validation import part_images
+    from tdof20.experiments.reproduce import reproduce
+    from tdof20.dataset.validation import part_images
 
     write_tdof20_release(tmp_path / "TDoF20", classes=("cube_136", "handle_cup_280"), multi=("00", "02"),
                          frames_per_scene=16)  # 4 per arm position: a validation arc of 1

@@ -14,8 +14,8 @@ import json
 import pytest
 import torch
 
-from tdof20.benchmark import reproduce as R
-from tdof20.benchmark.reproduce import make_config, reproduce, validation_images
+from tdof20.experiments import reproduce as R
+from tdof20.experiments.reproduce import make_config, reproduce, validation_images
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_json
 from tdof20.sim.scenes import get_scene, normalize_scene_id
@@ -314,7 +314,7 @@ def test_cli_command(tmp_path):
 
 
 def test_validation_arcs_are_contiguous_and_apart_from_test():
-    from tdof20.benchmark.splits import simple_test_steps
+    from tdof20.dataset.splits import simple_test_steps
 
     steps, arms = 40, 4
     images = [(12, a * steps + k) for a in range(arms) for k in range(steps)

@@ -1,4 +1,4 @@
-"""The paper's tables from score dicts (tdof20.benchmark.tables): layout, bold, oracle marks,
+"""The paper's tables from score dicts (tdof20.experiments.tables): layout, bold, oracle marks,
 missing cells, agreement, CSV / JSON / plots.
 
 Score dicts come from the real scorer on a tiny BOP dataset written here (catalog models, a
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tdof20.benchmark import scoring
-from tdof20.benchmark import tables as T
-from tdof20.benchmark.scoring import evaluate
+from tdof20.scoring import scoring
+from tdof20.experiments import tables as T
+from tdof20.scoring.scoring import evaluate
 from tdof20.errors import TdofError
 from tdof20.formats import BopSceneWriter, write_json
 from tdof20.objects import export_models, get_object

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tdof20.benchmark import metrics as M
-from tdof20.benchmark import report, scoring
-from tdof20.benchmark.results import HEADER, Results, read_results, write_results_csv
-from tdof20.benchmark.scoring import evaluate, score, score_command
+from tdof20.scoring import metrics as M
+from tdof20.scoring import report, scoring
+from tdof20.dataset.results import HEADER, Results, read_results, write_results_csv
+from tdof20.scoring.scoring import evaluate, score, score_command
 from tdof20.errors import TdofError
 from tdof20.formats import BopSceneWriter, write_json
 from tdof20.objects import export_models, get_object

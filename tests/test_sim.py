@@ -8,7 +8,7 @@ from tdof20.formats import RawSession, read_scene, read_session, sha256_file
 from tdof20.geometry import invert, rotation_angle, transform_points
 from tdof20.objects import get_object
 from tdof20.sim.rig import RigLayout, ur5_fk, ur5_ik
-from tdof20.benchmark.splits import HARD_TEST_MULTI, part_of
+from tdof20.dataset.splits import HARD_TEST_MULTI, part_of
 from tdof20.objects import object_names
 from tdof20.sim.scenes import (get_scene, normalize_scene_id, parse_scene_id, scene_ids, scene_name,
                                scene_number)

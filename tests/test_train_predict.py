@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from tdof20.benchmark.dataset import build_dataset, split_images
+from tdof20.dataset.build import build_dataset, split_images
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.methods.data import (DEPTH_MODES, HFFTransform, SceneImages, backproject, keypoint_table,
@@ -150,8 +150,8 @@ def test_short_training_learns(runs, dataset):
 
 
 def test_train_predict_score_round_trip(runs, dataset, tmp_path):
-    from tdof20.benchmark.results import read_results
-    from tdof20.benchmark.scoring import score
+    from tdof20.dataset.results import read_results
+    from tdof20.scoring.scoring import score
 
     for split in ("simple", "hard"):
         out = predict(runs["trained"], dataset, split, tmp_path / f"hff6dof_{split}.csv", device="cpu",
@@ -186,7 +186,7 @@ def test_every_baseline_trains_predicts_and_scores_through_the_same_loop(name, d
     run folder alone (it knows its method), and the results scored like HFF6DoF's."""
     import json
 
-    from tdof20.benchmark.scoring import score
+    from tdof20.scoring.scoring import score
     from tdof20.methods.registry import method_names
 
     if name not in method_names():

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tdof20.benchmark.dataset import build_dataset, split_images
+from tdof20.dataset.build import build_dataset, split_images
 from tdof20.capture import run_capture, sim_config
 from tdof20.methods.train import train
 from tdof20.sim.truth import oracle_scene

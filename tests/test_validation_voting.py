@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from tdof20.benchmark.dataset import build_dataset, split_images
-from tdof20.benchmark.splits import part_of, simple_test_steps, val_steps, validation_images
-from tdof20.benchmark.validation import part_images, split_with_val, val_targets, write_val_targets
+from tdof20.dataset.build import build_dataset, split_images
+from tdof20.dataset.splits import part_of, simple_test_steps, val_steps, validation_images
+from tdof20.dataset.validation import part_images, split_with_val, val_targets, write_val_targets
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
@@ -139,7 +139,7 @@ def test_observed_origin_targets_only_where_the_input_depth_is_valid(dataset):
 
 
 def test_train_on_train_minus_val_then_predict_and_score_on_val(dataset, tmp_path):
-    from tdof20.benchmark.scoring import score
+    from tdof20.scoring.scoring import score
 
     run = tmp_path / "run"
     opts = dict(image_size=(32, 48), batch_size=4, num_workers=0, progress=False, device="cpu")

@@ -46,7 +46,7 @@ __all__ = ["T_arr", "T_list", "copy_file", "copy_models", "load_meshes", "match_
 # ---------------------------------------------------------------------------------------------
 def load_meshes(models_dir: Path, obj_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """{obj_id: (V, F)} of a models folder, checked by :func:`~tdof20.annotate.modelbuild.load_models`."""
-    from tdof20.annotate.modelbuild import load_models
+    from tdof20.dataset.models import load_models
 
     return {o: (V, F) for o, (V, F, _) in load_models(models_dir, obj_ids).items()}
 

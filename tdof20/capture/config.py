@@ -141,7 +141,7 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     """Everything that can be checked without hardware (workspace limits: see plan.check_workspace)."""
     src = cfg.source
     from tdof20.errors import TdofError
-    from tdof20.sim.scenes import VALID_FORMS, normalize_scene_id
+    from tdof20.dataset.naming import VALID_FORMS, normalize_scene_id
 
     s = cfg.session
     try:

@@ -1,6 +1,5 @@
 """Readers and atomic writers of the folders the stages exchange: the raw capture session
-(:mod:`tdof20.formats.session`), BOP scenes and models info (:mod:`tdof20.formats.bop`), the one
-dataset reader for tdof20's and BOP's standard layouts (:mod:`tdof20.formats.dataset`), and the
+(:mod:`tdof20.formats.session`), BOP scenes and models info (:mod:`tdof20.formats.bop`), the released TDoF20 layout (:mod:`tdof20.formats.tdof20_release`) and the
 checked JSON/PNG primitives beneath them (:mod:`tdof20.formats.io`). See ``docs/formats.md``."""
 
 from tdof20.formats.io import (
@@ -58,7 +57,6 @@ from tdof20.formats.bop import (
     write_model_mesh,
     write_models_info,
 )
-from tdof20.formats.dataset import Dataset, detect_layout, open_dataset
 
 __all__ = [
     # io
@@ -74,6 +72,4 @@ __all__ = [
     "BopSceneWriter", "bbox_from_mask", "check_scene_images", "dumps_bop_json", "gt_info_from_masks", "pose_from_bop",
     "pose_to_bop", "read_models_info", "read_scene", "write_models_info", "model_path",
     "read_model_mesh", "write_model_mesh",
-    # dataset
-    "Dataset", "detect_layout", "open_dataset",
 ]

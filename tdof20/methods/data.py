@@ -44,7 +44,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tdof20.benchmark.splits import HARD_TEST_MULTI, _hard_train_multi
+from tdof20.dataset.splits import HARD_TEST_MULTI, _hard_train_multi
 from tdof20.errors import TdofError
 from tdof20.methods.hff6dof import fill_depth_holes, geometry_map
 from tdof20.objects.keypoints import KEYPOINT_SAMPLES, KEYPOINT_SEED, N_KEYPOINTS, surface_keypoints
@@ -98,7 +98,7 @@ def check_depth_mode(mode: str) -> str:
     return mode
 
 
-#: what each part of a split takes (tdof20.benchmark.splits), for the message when it is empty
+#: what each part of a split takes (tdof20.dataset.splits), for the message when it is empty
 SPLIT_PART_SCENES = {
     ("simple", "train"): "the single-object scenes' frames outside the test arcs",
     ("simple", "test"): "one arc of turntable steps per arm position of the single-object scenes",
@@ -111,8 +111,8 @@ def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: 
     """(scene_id, im_id) of ``split``/``part`` of the dataset (either layout); a one-line TdofError
     naming the split, the part and the dataset root when the part is empty (``purpose``: 'train
     on', 'predict')."""
-    from tdof20.benchmark.dataset import split_images
-    from tdof20.formats.dataset import open_dataset
+    from tdof20.dataset.build import split_images
+    from tdof20.dataset.reader import open_dataset
 
     ds = open_dataset(dataset_root)
     if ds.layout == "bop":
@@ -133,7 +133,7 @@ def split_part_images(dataset_root: str | Path, split: str, part: str, purpose: 
 def dataset_meta(ds, classes: Sequence[int], image_size: Sequence[int], n_model_points: int = 500,
                  seed: int = 0):
     """The :class:`~tdof20.methods.base.MethodMeta` a method trains with on dataset ``ds`` (an
-    opened :class:`tdof20.formats.dataset.Dataset`): the objects ``classes`` in class order, their
+    opened :class:`tdof20.dataset.reader.Dataset`): the objects ``classes`` in class order, their
     keypoints (the dataset's), diameters and symmetries (models_info.json: symmetric when it
     lists discrete or continuous symmetries), ``n_model_points`` area-uniform surface samples of
     each model (deterministic in ``seed``) and the network input size."""
@@ -172,7 +172,7 @@ def dataset_meta(ds, classes: Sequence[int], image_size: Sequence[int], n_model_
 
 def model_keypoints(models_dir: str | Path, obj_ids: Sequence[int] | None = None, k: int = N_KEYPOINTS,
                     n_samples: int = KEYPOINT_SAMPLES, seed: int = KEYPOINT_SEED) -> dict[int, np.ndarray]:
-    # (a dataset's keypoints, keypoints.json first: tdof20.formats.dataset.Dataset.keypoints)
+    # (a dataset's keypoints, keypoints.json first: tdof20.dataset.reader.Dataset.keypoints)
     """Keypoints {obj_id: (k,3) mm} of the dataset's models (``ROOT/models/obj_{id:06d}.ply``,
     read with trimesh); every object of models_info.json unless ``obj_ids`` is given."""
     from tdof20.formats import read_models_info
@@ -290,7 +290,7 @@ def resize_frame(item: Mapping, hw: Sequence[int], depth_mode: str) -> tuple:
 
 
 class HFFTransform:
-    """A dataset item (a :class:`~tdof20.formats.shards.ShardDataset` item or a
+    """A dataset item (a :class:`~tdof20.dataset.shards.ShardDataset` item or a
     :class:`SceneImages` item) -> network inputs and targets at ``image_size`` (H, W).
 
     Output dict:
@@ -377,8 +377,8 @@ class TransformedDataset(torch.utils.data.Dataset):
 
 class SceneImages(torch.utils.data.Dataset):
     """Images (scene_id, im_id) read straight from a dataset root of either layout (through
-    :func:`tdof20.formats.dataset.open_dataset`; ``split``: a BOP dataset's split folder), as items
-    in the layout of :class:`~tdof20.formats.shards.ShardDataset` (what :class:`HFFTransform`
+    :func:`tdof20.dataset.reader.open_dataset`; ``split``: a BOP dataset's split folder), as items
+    in the layout of :class:`~tdof20.dataset.shards.ShardDataset` (what :class:`HFFTransform`
     takes): rgb, depth, K, depth_restored (``restored``: stored, else rendered once and cached;
     None without ``restored``), and the labels (label, instance, obj_id, R, t) when ``labels``."""
 
@@ -396,7 +396,7 @@ class SceneImages(torch.utils.data.Dataset):
         return len(self.images)
 
     def dataset(self):
-        from tdof20.formats.dataset import open_dataset
+        from tdof20.dataset.reader import open_dataset
 
         if self._ds is None:
             self._ds = open_dataset(self.root, self.split, cache_dir=self.cache_dir)

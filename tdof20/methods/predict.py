@@ -325,7 +325,7 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
             progress: bool = True, method_options: dict | None = None, part: str = "test",
             cache_dir: str | Path | None = None) -> Path:
     """Estimate the poses of every test image of ``split`` (``part`` 'val': of its validation part,
-    :mod:`tdof20.benchmark.validation`, where choices are made) with the run in ``run_dir`` (any method)
+    :mod:`tdof20.dataset.validation`, where choices are made) with the run in ``run_dir`` (any method)
     and write the BOP results CSV ``out_csv`` (scene_id,im_id,obj_id,score,R,t,time); returns its
     path. A summary (method, its config, depth mode, timings, counts, options) goes to
     ``<out_csv stem>_info.json`` beside it.
@@ -339,7 +339,7 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     cache_dir: where restored depth the dataset lacks is rendered (default ROOT/.cache; for a
     read-only dataset folder), as for training.
     """
-    from tdof20.benchmark.results import write_results_csv
+    from tdof20.dataset.results import write_results_csv
 
     out_csv = check_output_file(out_csv)
     check_output_file(info_path(out_csv), "the summary beside --out",
@@ -392,7 +392,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         raise TdofError(f"--masks must be one of {', '.join(MASK_SOURCES)}, got '{masks}'")
     if voting is not None and voting not in VOTING:
         raise TdofError(f"--voting must be one of {', '.join(VOTING)}, got '{voting}'")
-    from tdof20.formats.dataset import open_dataset
+    from tdof20.dataset.reader import open_dataset
 
     ds = open_dataset(dataset_root)  # the one "not a dataset" check
     bop_split = ds.check_split(split) if ds.layout == "bop" else None
@@ -402,7 +402,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         raise TdofError(f"--batch-size must be >= 1 and --workers >= 0, got {batch_size} and {num_workers}")
     if images is None:
         if part == "val":
-            from tdof20.benchmark.validation import part_images
+            from tdof20.dataset.validation import part_images
 
             images = part_images(dataset_root, split, "val")
             if not images:
@@ -504,7 +504,7 @@ def segmentation_iou(run_dir: str | Path, dataset_root: str | Path, split: str, 
     PVNet, DenseFusion's segmentation net; not FFB6D, which segments points)."""
     if images is None:
         images = split_part_images(dataset_root, split, part, "measure")
-    from tdof20.formats.dataset import open_dataset
+    from tdof20.dataset.reader import open_dataset
 
     ds = open_dataset(dataset_root)
     bop_split = ds.check_split(split) if ds.layout == "bop" else None

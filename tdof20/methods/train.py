@@ -537,7 +537,7 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
 def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
                show: bool, cache_dir: str | Path | None = None, images: list | None = None,
                part: str = "train") -> Path:
-    from tdof20.benchmark.dataset import pack
+    from tdof20.dataset.build import pack
 
     if shard is not None:
         path = Path(shard)
@@ -550,8 +550,8 @@ def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path 
             pack(dataset_root, split, "train", path, show_progress=show, cache_dir=cache_dir)
         return path
     # a subset of the train part (train minus validation, or an explicit list)
-    from tdof20.formats.dataset import open_dataset
-    from tdof20.formats.shards import pack_shard
+    from tdof20.dataset.reader import open_dataset
+    from tdof20.dataset.shards import pack_shard
 
     path = out_run / "data" / f"{split}_{part}.h5"
     if rank == 0 and not path.exists():
@@ -573,7 +573,7 @@ def train_images(dataset_root: str | Path, split: str, part: str = "train",
                  images: list[tuple[int, int]] | None = None) -> tuple[list[tuple[int, int]] | None, str]:
     """The images a training takes, and the part's name for the run: (None, 'train') = the whole
     train part (packed as `dataset pack` does); part 'train-val' = the train part minus the
-    validation part (tdof20.benchmark.validation); ``images`` = exactly these (part 'images';
+    validation part (tdof20.dataset.validation); ``images`` = exactly these (part 'images';
     refused when one is outside the train part)."""
     if images is not None:
         images = sorted({(int(s), int(i)) for s, i in images})
@@ -589,7 +589,7 @@ def train_images(dataset_root: str | Path, split: str, part: str = "train",
         raise TdofError(f"--part must be one of {', '.join(TRAIN_PARTS)}, got '{part}'")
     if part == "train":
         return None, "train"
-    from tdof20.benchmark.validation import split_with_val
+    from tdof20.dataset.validation import split_with_val
 
     keep, val = split_with_val(dataset_root, split)
     if not keep:
@@ -671,7 +671,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     save_every_s: checkpoint at the end of an epoch when the last checkpoint is older than this many
     seconds (0 = after every epoch), and always when the run ends.
     part: 'train' (default: the split's whole train part) or 'train-val' (the train part minus its
-    validation part, :mod:`tdof20.benchmark.validation`, so that choices can be made on
+    validation part, :mod:`tdof20.dataset.validation`, so that choices can be made on
     validation); images: an explicit list of (scene_id, im_id) of the train part instead. The run
     records its part ("part", and "images_sha256" of the list) and refuses to resume on another.
     stop_epoch: end this call once this many epochs are done in all (or at the run's end, if that
@@ -685,17 +685,17 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     into ROOT/.cache/ (or ``cache_dir``) when the shard is packed (training targets use it; the
     input depth of every method is the sensor's, raw or filled, unless depth_mode says 'restored').
     """
-    from tdof20.formats.shards import ShardDataset
+    from tdof20.dataset.shards import ShardDataset
 
     rank, local_rank, world = _distributed()
     try:  # the checks before any work
         m = get_method(method)
         dataset_root = Path(dataset_root)
         out_run = Path(out_run)
-        from tdof20.formats.dataset import open_dataset
+        from tdof20.dataset.reader import open_dataset
         ds = open_dataset(dataset_root)  # the one "not a dataset" check
         if ds.layout == "tdof20":
-            from tdof20.benchmark.splits import SPLITS
+            from tdof20.dataset.splits import SPLITS
             if split not in SPLITS:
                 raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
         else:

@@ -8,12 +8,11 @@ without touching each other. Each scene has one background sticker. Everything i
 of the scene name, so every machine builds the same scene.
 
 Numeric (BOP) scene ids: ``single/<class>`` -> its object id (1..20), ``multi/NN`` -> 21 + NN
-(21..40); see :func:`scene_number` and :func:`scene_name`.
+(21..40); the names and numbers are the dataset's (:mod:`tdof20.dataset.naming`, re-exported here).
 """
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -21,12 +20,11 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.geometry import make_T, rotation_matrix
-from tdof20.objects import get_object, object_ids, object_names
+from tdof20.dataset.naming import (MULTI_ID_OFFSET, N_MULTI, VALID_FORMS, normalize_scene_id,  # noqa: F401
+                                   parse_scene_id, scene_ids, scene_name, scene_number)
+from tdof20.objects import get_object, object_ids
 from tdof20.sim.textures import STICKERS
 
-N_MULTI = 20  # multi/00 .. multi/19
-MULTI_ID_OFFSET = 21  # multi/NN has the numeric scene id 21 + NN
-VALID_FORMS = "single/<class name> (e.g. single/cube_136), single/01..single/20 (object id) or multi/00..multi/19"
 CLEARANCE_MM = 8.0  # free gap between object footprints
 
 
@@ -62,52 +60,6 @@ class SceneSpec:
     def numeric_id(self) -> int:
         """The scene's numeric (BOP) id: 1..20 for single/<class>, 21 + NN for multi/NN."""
         return scene_number(self.scene_id)
-
-
-def scene_ids() -> list[str]:
-    """The 40 scene names: single/<class> in object id order, then multi/00 .. multi/19."""
-    return [f"single/{name}" for name in object_names().values()] + [f"multi/{i:02d}" for i in range(N_MULTI)]
-
-
-def parse_scene_id(scene_id: str) -> tuple[str, int]:
-    """('single', object id) or ('multi', NN) of a scene name or alias; unknown -> one-line TdofError."""
-    s = str(scene_id)
-    kind, _, rest = s.partition("/")
-    names = object_names()
-    if kind == "single":
-        if re.fullmatch(r"\d{2}", rest) and int(rest) in names:
-            return "single", int(rest)
-        for obj_id, name in names.items():
-            if rest == name:
-                return "single", obj_id
-    elif kind == "multi" and re.fullmatch(r"\d{2}", rest) and int(rest) < N_MULTI:
-        return "multi", int(rest)
-    raise TdofError(f"unknown scene {s!r} (valid: {VALID_FORMS})")
-
-
-def normalize_scene_id(scene_id: str) -> str:
-    """The scene's canonical name: 'single/07' -> 'single/handle_cup_280'; names pass unchanged."""
-    kind, n = parse_scene_id(scene_id)
-    return f"single/{object_names()[n]}" if kind == "single" else f"multi/{n:02d}"
-
-
-def scene_number(scene_id: str) -> int:
-    """Numeric (BOP) scene id: 'single/cube_136' (or 'single/01') -> 1, 'multi/00' -> 21, 'multi/19' -> 40."""
-    kind, n = parse_scene_id(scene_id)
-    return n if kind == "single" else MULTI_ID_OFFSET + n
-
-
-def scene_name(number: int) -> str:
-    """The scene name of a numeric scene id: 1 -> 'single/cube_136', 21 -> 'multi/00'."""
-    names = object_names()
-    if isinstance(number, (int, np.integer)) and not isinstance(number, bool):
-        k = int(number)
-        if k in names:
-            return f"single/{names[k]}"
-        if 0 <= k - MULTI_ID_OFFSET < N_MULTI:
-            return f"multi/{k - MULTI_ID_OFFSET:02d}"
-    raise TdofError(f"unknown scene id {number!r} (valid: 1-{len(names)} for single/<class>, "
-                    f"{MULTI_ID_OFFSET}-{MULTI_ID_OFFSET + N_MULTI - 1} for multi/00..multi/{N_MULTI - 1:02d})")
 
 
 def _place(obj_id: int, xy, yaw: float) -> Placement:

@@ -23,13 +23,13 @@ not held-out scenes: the 14 training multi-object scenes each hold their own arr
 so holding scenes out would take some objects' multi-object views out of training altogether (and a
 small dataset has but one or two), while held-out arcs keep every scene and object in both parts
 (near-duplicate neighbours only at the arcs' two ends). The release has no validation files: readers
-compute the part from these rules (:mod:`tdof20.benchmark.validation`).
+compute the part from these rules (:mod:`tdof20.dataset.validation`).
 """
 
 from __future__ import annotations
 
 from tdof20.errors import TdofError
-from tdof20.sim.scenes import MULTI_ID_OFFSET, N_MULTI, scene_name, scene_number
+from tdof20.dataset.naming import MULTI_ID_OFFSET, N_MULTI, scene_name, scene_number
 
 PAPER_SIMPLE = (26434, 4674)
 PAPER_HARD = (52747, 9139)

@@ -30,7 +30,7 @@ matched against are those at least 10% visible (scene_gt_info.json) when exactly
 are, else all instances of the object in the image.
 
 Exactness. ADD and proj2d are computed exactly for every target (float32, redone in float64 near
-the thresholds). ADD-S decisions are exact: the fast bounds of :mod:`~tdof20.benchmark.metrics`
+the thresholds). ADD-S decisions are exact: the fast bounds of :mod:`~tdof20.scoring.metrics`
 decide every target whose interval lies on one side of the threshold, finer bounds and then
 KD-tree queries the rest. ADD-S *values* (for the AUCs and plots) are the cluster estimate plus
 the mean of exact-minus-control residuals at random model points (a control variate, so the
@@ -55,8 +55,8 @@ import numpy as np
 from tdof20.errors import TdofError
 from tdof20.formats.bop import MODELS_INFO, model_path, read_model_mesh, read_models_info
 from tdof20.formats.io import read_json
-from tdof20.benchmark import metrics as M
-from tdof20.benchmark.results import ID_MAX, Results, check_against_dataset, read_results
+from tdof20.scoring import metrics as M
+from tdof20.dataset.results import ID_MAX, Results, check_against_dataset, read_results
 
 ADD_THRESHOLD = 0.1  # fraction of the diameter
 PROJ_THRESHOLD = 5.0  # pixels
@@ -164,12 +164,12 @@ def _scene_data(scene_dir: Path) -> SceneData:
 
 class DatasetView:
     """A dataset folder (tdof20's layout or BOP's standard one, read through
-    :func:`tdof20.formats.dataset.open_dataset`) as scoring sees it: models_info read at once,
+    :func:`tdof20.dataset.reader.open_dataset`) as scoring sees it: models_info read at once,
     models and scenes on demand. ``split``: a BOP dataset's split folder (default: the one
     test_targets_bop19.json belongs to); a tdof20 dataset's protocol is only used for messages."""
 
     def __init__(self, root: str | Path, split: str | None = None):
-        from tdof20.formats.dataset import open_dataset
+        from tdof20.dataset.reader import open_dataset
 
         self.dataset = open_dataset(root)  # the one "not a dataset" check
         self.root = self.dataset.root
@@ -409,7 +409,7 @@ def require_targets(tg: Targets, ds: DatasetView, split: str | None) -> None:
         return
     if split is None:
         raise TdofError("no test targets in this file: nothing to score", tg.path)
-    from tdof20.benchmark.dataset import empty_part_reason, split_images
+    from tdof20.dataset.build import empty_part_reason, split_images
 
     why = ""
     if ds.dataset.layout == "tdof20":
@@ -1077,7 +1077,7 @@ def score_command(results: list[Path], dataset: Path, split: str | None, targets
     (one file: its summary; several: {"<method>": summary, ...}) and the plots plus ``report.md``
     (Markdown tables) in DIR, and return the text to print: Tables 1-3 (those computed), every
     metric per method and per scene, warnings and timings."""
-    from tdof20.benchmark import report
+    from tdof20.scoring import report
     from tdof20.formats.io import atomic_write_bytes, check_output_dir, check_output_file, write_json
 
     if not results:

@@ -27,12 +27,12 @@ import shutil
 from collections import Counter, defaultdict
 from pathlib import Path
 
-from tdof20.benchmark.splits import (PARTS, SPLITS, min_simple_steps, part_needs, part_of, scene_can_serve,
+from tdof20.dataset.splits import (PARTS, SPLITS, min_simple_steps, part_needs, part_of, scene_can_serve,
                                      scene_name, scene_number)
 from tdof20.errors import TdofError
 from tdof20.formats import (check_output_dir, check_output_file, check_scene_images, read_bytes, read_json,
                             read_models_info, read_scene, write_json)
-from tdof20.formats.dataset import open_dataset
+from tdof20.dataset.reader import open_dataset
 from tdof20.formats.session import MAX_STEPS
 from tdof20.progress import progress
 
@@ -133,8 +133,8 @@ def _names(ids) -> str:
 def _plan_models(sources: list[Path], sub: str, out: Path, keep: bool) -> tuple[dict[int, dict], list[tuple[Path, Path]]]:
     """The models of ``out/sub`` after the build: (models_info entries, [(model file to copy, destination)]).
     One object must keep one model across scenes (and, with ``keep``, the dataset's own); a model
-    taken is checked as annotate --models checks a user's (modelbuild.load_models)."""
-    from tdof20.annotate.modelbuild import load_models
+    taken is checked as annotate --models checks a user's (tdof20.dataset.models.load_models)."""
+    from tdof20.dataset.models import load_models
 
     seen: dict[int, tuple[str, str]] = {}
     infos: dict[int, dict] = {}
@@ -363,7 +363,7 @@ def write_splits(root: Path, info: dict | None = None) -> None:
 
 
 def split_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]]:
-    """(scene_id, im_id) of a split part, in order (any layout: :meth:`tdof20.formats.dataset.Dataset.frames`)."""
+    """(scene_id, im_id) of a split part, in order (any layout: :meth:`tdof20.dataset.reader.Dataset.frames`)."""
     ds = open_dataset(root)
     if ds.layout == "tdof20" and (split not in SPLITS or part not in PARTS):
         raise TdofError(f"split must be one of {SPLITS} and part one of {PARTS}, got {split}/{part}")
@@ -436,9 +436,9 @@ def empty_part_reason(root: str | Path, split: str, part: str) -> str:
 def pack(root: str | Path, split: str, part: str, out: str | Path, show_progress: bool = True,
          cache_dir: str | Path | None = None) -> Path:
     """Pack a split part of the dataset (either layout) into one HDF5 shard (see
-    tdof20.formats.shards). Restored depth the dataset lacks is rendered first, once, and cached
+    tdof20.dataset.shards). Restored depth the dataset lacks is rendered first, once, and cached
     (under ROOT/.cache/ or ``cache_dir``)."""
-    from tdof20.formats.shards import pack_shard
+    from tdof20.dataset.shards import pack_shard
 
     root = Path(root)
     out = Path(out)
@@ -514,8 +514,8 @@ def build_bop_dataset(scene_dirs: list[str | Path], out: str | Path, split: str,
     Scene ids are tdof20's (single/<class> -> 1..20, multi/NN -> 21..40); a simple-split scene
     has frames in both folders. ``out`` must be empty or new, or hold an earlier BOP build of
     the same scenes and protocol (rebuilt). Returns :func:`stats` of the result."""
-    from tdof20.benchmark.splits import SPLITS as PROTOCOLS
-    from tdof20.formats.dataset import BOP_INFO, BOP_TARGETS, NAMES_FILE
+    from tdof20.dataset.splits import SPLITS as PROTOCOLS
+    from tdof20.dataset.reader import BOP_INFO, BOP_TARGETS, NAMES_FILE
 
     out = Path(out)
     if split not in PROTOCOLS:

@@ -3,7 +3,7 @@
 Pure functions: nothing here trains, predicts or scores. The inputs are
 
 - :class:`Entry` — one scored result: a column title (``label``), the registry's method name, the
-  protocol ('simple' | 'hard'), the dict :func:`tdof20.benchmark.scoring.score` returns (optionally
+  protocol ('simple' | 'hard'), the dict :func:`tdof20.scoring.scoring.score` returns (optionally
   with ``"curves"``, see :func:`curves_from_evaluation`) and whether ground-truth masks picked the
   object pixels (``oracle_masks``);
 - profile records of :func:`tdof20.methods.profile.profile_method` (Table 3).
@@ -95,7 +95,7 @@ CLAIMS = {
 class Entry:
     """One scored result. label: the column title ("HFF6DoF", "HFF6DoF 3D voting + LSQ"); method:
     the registry's name ('hff6dof', 'pvnet', ...); split: 'simple' | 'hard'; scores: the dict of
-    :func:`~tdof20.benchmark.scoring.score`; oracle_masks: ground-truth masks picked the object
+    :func:`~tdof20.scoring.scoring.score`; oracle_masks: ground-truth masks picked the object
     pixels; note: a short remark printed under the table."""
 
     label: str
@@ -577,11 +577,11 @@ def agreement_csv(claims: Sequence[Mapping]) -> str:
 
 
 def curves_from_evaluation(ev, points: int = 101) -> dict:
-    """Accuracy-vs-threshold curves of a :class:`~tdof20.benchmark.scoring.Evaluation`, pooled over
+    """Accuracy-vs-threshold curves of a :class:`~tdof20.scoring.scoring.Evaluation`, pooled over
     its targets, to store in a score dict under "curves": {"add_s": {"x": % of the diameter 0-100,
     "y": accuracy}, "proj2d": {"x": px 0-20, "y": ...}} (those computed)."""
-    from tdof20.benchmark.report import accuracy_curve
-    from tdof20.benchmark.scoring import PROJ_PLOT_MAX
+    from tdof20.scoring.report import accuracy_curve
+    from tdof20.scoring.scoring import PROJ_PLOT_MAX
 
     objs = list(ev.objects.values())
     out = {}

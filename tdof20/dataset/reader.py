@@ -472,7 +472,7 @@ class Dataset:
                 write_png(self.cached_restored_path(sid, im, split), rc.camera.mm_to_depth(out))
                 bar.advance(task)
         write_json(base.parent / "info.json", {"what": "restored depth rendered from the models and poses "
-                                               "(tdof20.formats.dataset.render_restored)",
+                                               "(tdof20.dataset.reader.render_restored)",
                                                "dataset": str(self.root.resolve())})
         return len(todo)
 

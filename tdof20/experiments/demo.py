@@ -171,7 +171,7 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     from tdof20.annotate.evaluate import TARGETS
     from tdof20.annotate.config import AnnotateConfig
     from tdof20.annotate.pipeline import annotate, summary_text
-    from tdof20.benchmark.dataset import build_dataset, stats
+    from tdof20.dataset.build import build_dataset, stats
     from tdof20.capture import run_capture, sim_config
     from tdof20.objects.catalog import export_models
     from tdof20.sim.scenes import get_scene, normalize_scene_id
@@ -288,7 +288,7 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         return result
 
     # train, predict, score ----------------------------------------------------------------
-    from tdof20.benchmark.scoring import run_info, run_line, score_command
+    from tdof20.scoring.scoring import run_info, run_line, score_command
     from tdof20.methods.predict import predict
     from tdof20.methods.train import train as train_method
 

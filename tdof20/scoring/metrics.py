@@ -40,7 +40,7 @@ Fast kernels (:class:`ModelPoints` holds what they precompute per object):
   1e-5 relative + 1e-4 mm.
 * :func:`adds_cv_residuals`: exact errors at random points minus a per-point control variate
   whose mean over the model is exactly the cluster estimate; the scorer uses their mean to
-  correct the estimates (for AUCs), see :mod:`tdof20.benchmark.scoring`.
+  correct the estimates (for AUCs), see :mod:`tdof20.scoring.scoring`.
 
 BOP challenge metrics (BOP19; bop_toolkit ``pose_error.py``, ``eval_calc_errors.py``):
 

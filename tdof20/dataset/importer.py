@@ -3,7 +3,7 @@
     summary = import_tdof20(SRC, ROOT)               # writes ROOT; resumes an interrupted import
     summary = import_tdof20(SRC, ROOT, check=True)   # reads and checks everything, writes nothing
 
-What ROOT holds (the layout of :mod:`tdof20.benchmark.dataset`, docs/tdof20_release.md)::
+What ROOT holds (the layout of :mod:`tdof20.dataset.build`, docs/tdof20_release.md)::
 
     ROOT/dataset_info.json     "source": "tdof20-release", scenes, objects, units, depth modes, im_id rule
     ROOT/camera.json           the release's intrinsics (depth_scale in mm per unit)

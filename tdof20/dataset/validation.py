@@ -1,5 +1,5 @@
 """The validation part of a dataset's protocols, computed from the rules of
-:mod:`tdof20.benchmark.splits` (the dataset holds no validation files: a dataset built before the
+:mod:`tdof20.dataset.splits` (the dataset holds no validation files: a dataset built before the
 rules, or an imported TDoF20, gets the same part).
 
     val = part_images(ROOT, "simple", "val")           # [(scene_id, im_id), ...]
@@ -45,8 +45,8 @@ def _positions(ds, sid: int) -> dict:
 
 def split_with_val(root: str | Path, split: str) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """(train minus validation, validation) of ``split``'s train part of the dataset at ``root``."""
-    from tdof20.benchmark.splits import VAL_PART, part_of
-    from tdof20.formats.dataset import open_dataset
+    from tdof20.dataset.splits import VAL_PART, part_of
+    from tdof20.dataset.reader import open_dataset
 
     ds = open_dataset(root)
     if ds.layout != "tdof20":
@@ -69,7 +69,7 @@ def part_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]
     """(scene_id, im_id) of ``part`` ('train', 'test', 'val', 'train-val') of ``split``."""
     check_part(part)
     if part in ("train", "test"):
-        from tdof20.benchmark.dataset import split_images
+        from tdof20.dataset.build import split_images
 
         return split_images(root, split, part)
     keep, val = split_with_val(root, split)
@@ -79,7 +79,7 @@ def part_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]
 def val_targets(root: str | Path, split: str) -> list[dict]:
     """BOP targets [{"scene_id", "im_id", "obj_id", "inst_count"}] of the validation images: every
     object instance at least 10 % visible, as the test targets."""
-    from tdof20.formats.dataset import open_dataset
+    from tdof20.dataset.reader import open_dataset
 
     ds = open_dataset(root)
     out = []

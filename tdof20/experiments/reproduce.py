@@ -1,6 +1,6 @@
 """``tdof20 reproduce``: the paper's tables with one command, resumable.
 
-    from tdof20.benchmark.reproduce import reproduce
+    from tdof20.experiments.reproduce import reproduce
     out = reproduce("repro", preset="smoke")                  # -> repro/tables/tables.md
     out = reproduce("repro", config="my.toml", dataset="ROOT")  # a TOML over a preset; a given dataset
 
@@ -79,7 +79,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from tdof20.benchmark.splits import validation_images  # noqa: F401  (re-exported: the rules live in splits)
+from tdof20.dataset.splits import validation_images  # noqa: F401  (re-exported: the rules live in splits)
 from tdof20.config import ConfigError, check_ranges, config_from_data
 from tdof20.errors import TdofError
 from tdof20.progress import console, progress as progress_bar
@@ -125,7 +125,7 @@ class DataConfig:
                      non_negative=("seed",))
         if not self.scenes:
             raise ConfigError("data.scenes must not be empty")
-        from tdof20.sim.scenes import normalize_scene_id
+        from tdof20.dataset.naming import normalize_scene_id
 
         try:
             names = [normalize_scene_id(s) for s in self.scenes]
@@ -446,7 +446,7 @@ def predict_run(run: Path, root: Path, split: str, out_csv: Path, cfg: Reproduce
     """Predict ``part`` ('test' or 'val'; ``images``: these validation images only) of ``split`` with
     the run folder ``run`` into ``out_csv`` (+ ``_info.json``); ``options``: the method's prediction
     options (its config's names). Returns the summary."""
-    from tdof20.benchmark.results import write_results_csv
+    from tdof20.dataset.results import write_results_csv
     from tdof20.formats.io import read_json, write_json
     from tdof20.methods.predict import info_path, predict, predict_rows
 
@@ -468,8 +468,8 @@ def predict_run(run: Path, root: Path, split: str, out_csv: Path, cfg: Reproduce
 def score_run(results_csv: Path, root: Path, split: str, part: str = "test", targets: Path | None = None) -> dict:
     """The scorer's dict of a results CSV on ``split``'s test part, or (``part`` 'val') against the
     validation targets file ``targets``; with the accuracy curves and the scorer's warnings."""
-    from tdof20.benchmark.scoring import evaluate
-    from tdof20.benchmark.tables import curves_from_evaluation
+    from tdof20.scoring.scoring import evaluate
+    from tdof20.experiments.tables import curves_from_evaluation
 
     if part == "val":
         if targets is None:
@@ -563,9 +563,9 @@ class Job:
 
 
 def _sim_dataset(out: Path, cfg: ReproduceConfig, show: bool) -> Path:
-    from tdof20.benchmark.dataset import build_dataset
+    from tdof20.dataset.build import build_dataset
     from tdof20.capture import run_capture, sim_config
-    from tdof20.sim.scenes import normalize_scene_id
+    from tdof20.dataset.naming import normalize_scene_id
     from tdof20.sim.truth import oracle_scene
 
     d = cfg.data
@@ -669,7 +669,7 @@ class Validation:
 
     def images(self, split: str) -> list[tuple[int, int]]:
         if split not in self._images:
-            from tdof20.benchmark.validation import part_images
+            from tdof20.dataset.validation import part_images
 
             ims = part_images(self.root, split, "val")
             if not ims:
@@ -684,7 +684,7 @@ class Validation:
         return self._images[split]
 
     def targets(self, split: str) -> Path:
-        from tdof20.benchmark.validation import val_targets
+        from tdof20.dataset.validation import val_targets
         from tdof20.formats.io import write_json
 
         path = self.out / "val" / f"targets_{split}.json"
@@ -810,12 +810,12 @@ def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, defaul
 def _part_counts(cfg: ReproduceConfig) -> dict:
     """{split: {"train-val", "val", "test"}} image counts of the config's data, from the split rules
     (simulated scenes) or the given dataset, without building anything."""
-    from tdof20.benchmark.splits import VAL_PART, part_of
-    from tdof20.sim.scenes import normalize_scene_id, scene_number
+    from tdof20.dataset.splits import VAL_PART, part_of
+    from tdof20.dataset.naming import normalize_scene_id, scene_number
 
     out = {p: {"train-val": 0, "val": 0, "test": 0} for p in cfg.protocols}
     if cfg.dataset:
-        from tdof20.benchmark.validation import part_images
+        from tdof20.dataset.validation import part_images
 
         for p in cfg.protocols:
             for part in out[p]:
@@ -888,7 +888,7 @@ def estimate(cfg: ReproduceConfig, step_s: dict, image_s: dict, frame_s: float =
 def _entries(out: Path, cfg: ReproduceConfig, state: State):
     """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off); the HFF6DoF
     row chosen on validation to stand for HFF6DoF in the agreement claims carries extra["primary"]."""
-    from tdof20.benchmark.tables import Entry
+    from tdof20.experiments.tables import Entry
     from tdof20.formats.io import read_json
 
     entries, fusion, seg_on, seg_off = [], {}, None, None
@@ -915,8 +915,8 @@ def _entries(out: Path, cfg: ReproduceConfig, state: State):
 
 
 def _objects(root: Path) -> dict:
-    from tdof20.benchmark.scoring import DatasetView
-    from tdof20.benchmark.tables import models_info_objects
+    from tdof20.scoring.scoring import DatasetView
+    from tdof20.experiments.tables import models_info_objects
 
     ds = DatasetView(root)
     return models_info_objects(ds.models_info, {int(o): ds.object_name(int(o)) for o in ds.models_info})
@@ -1007,7 +1007,7 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
               dataset: str | Path | None = None, progress: bool = True) -> Path:
     """Run (or resume) the reproduction into ``out``; returns DIR/tables/tables.md. See the module
     docstring for the stages, presets and resume rules."""
-    from tdof20.benchmark.tables import write_tables
+    from tdof20.experiments.tables import write_tables
     from tdof20.formats.io import read_json, write_json
 
     cfg = make_config(preset, config, dataset)
@@ -1015,7 +1015,7 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     if out.exists() and not out.is_dir():
         raise TdofError("--out is a file, not a folder", out)
     if cfg.dataset:
-        from tdof20.formats.dataset import open_dataset
+        from tdof20.dataset.reader import open_dataset
 
         open_dataset(cfg.dataset)  # the one "not a dataset" check, before anything is written
     from tdof20.methods.train import select_device
