@@ -43,7 +43,7 @@ from tdof20.annotate.pipeline import annotate
 from tdof20.annotate.stages import STAGES
 from tdof20.capture import run_capture, sim_config
 from tdof20.formats import read_json, write_json
-from tdof20.formats.bop import read_models_info, write_models_info
+from tdof20.formats.bop_models import read_models_info, write_models_info
 from tdof20.sim.scenes import get_scene
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

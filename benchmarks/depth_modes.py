@@ -32,10 +32,12 @@ from tdof20.dataset.build import build_dataset
 from tdof20.scoring.scoring import score
 from tdof20.dataset.validation import part_images, write_val_targets
 from tdof20.capture import run_capture, sim_config
-from tdof20.methods.data import DEPTH_MODES, VECTOR_ORIGINS, HFFTransform, SceneImages, keypoint_table, \
-    keypoints_from_json
-from tdof20.methods.predict import VOTING, predict_rows, recover_poses, segmentation_iou
-from tdof20.methods.train import load_run, run_classes, train
+from tdof20.methods.data import DEPTH_MODES, SceneImages, keypoints_from_json
+from tdof20.methods.hff6dof_data import VECTOR_ORIGINS, HFFTransform, keypoint_table
+from tdof20.methods.hff6dof_pose import VOTING, recover_poses
+from tdof20.methods.predict import predict_rows, segmentation_iou
+from tdof20.methods.runs import load_run, run_classes
+from tdof20.methods.train import train
 from tdof20.sim.truth import oracle_scene
 
 

@@ -19,6 +19,9 @@ toolkit's (a KD-tree per pose, plain numpy), for VSD, MSSD and MSPD the BOP tool
 pose two full-frame depth renders, by the same open3d ray casting, and a loop over every symmetry
 transformation over every model point). On the subsets it checks that every decision (each
 threshold, and each tau for VSD) agrees, and prints the ratios.
+
+The imports are inside the functions that need them, so that the fresh ``--score-only`` process
+holds, and times, only what ``evaluate()`` imports (its wall time includes that import).
 """
 
 from __future__ import annotations
@@ -84,11 +87,11 @@ def make_workload(out: Path, n_images: int, seed: int = 0) -> dict:
     from concurrent.futures import ThreadPoolExecutor
     from scipy.spatial.transform import Rotation
 
-    from tdof20.scoring import metrics as M
     from tdof20.dataset.results import write_results_csv
     from tdof20.formats.bop import dumps_bop_json, write_models_info
     from tdof20.formats.io import atomic_write_bytes, write_json
     from tdof20.objects import export_models, get_object
+    from tdof20.scoring import metrics as M
 
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
@@ -240,11 +243,12 @@ def _matched_singles(root: Path):
     """(results, dataset view, [(target, row, position within its object)]) for every target with
     an estimate, in the scorer's order (single-instance targets: their object's instance order)."""
     from tdof20.dataset.results import read_results
-    from tdof20.scoring.scoring import DatasetView, _group_rows
+    from tdof20.scoring.dataset_view import DatasetView
+    from tdof20.scoring.scorer import group_rows
 
     ds = DatasetView(root)
     res = read_results(root / "synthetic_tdof20-hard.csv")
-    groups = _group_rows(res)
+    groups = group_rows(res)
     targets = json.loads((root / "test_targets_hard.json").read_text())
     pos: dict[int, int] = {}
     matched = []

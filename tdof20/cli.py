@@ -1,7 +1,14 @@
-"""The ``tdof20`` command line: thin — it parses options and calls a stage's public function."""
+"""The ``tdof20`` command line: thin — it parses options and calls a stage's public function.
+
+The stages whose modules import torch or open3d (training, prediction, profiling, the annotation
+pipeline, the simulator's renderer and oracle labels) are imported inside their commands, so that
+``tdof20 --help`` imports neither; every other module is imported here.
+"""
 
 from __future__ import annotations
 
+import json
+import shlex
 import sys
 from pathlib import Path
 from typing import Optional
@@ -11,8 +18,25 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from tdof20.annotate.evaluate import evaluate_command
+from tdof20.capture import check_workspace, describe, load_config, run_capture, sim_config, verify_session
+from tdof20.capture.rig import build_rig
+from tdof20.dataset.build import pack, stats
+from tdof20.dataset.importer import import_tdof20
+from tdof20.dataset.splits import HARD_TEST_MULTI, PAPER_HARD, PAPER_SIMPLE
+from tdof20.dataset.validation import write_val_targets
 from tdof20.errors import TdofError
+from tdof20.experiments.demo import parse_methods, run_demo
+from tdof20.experiments.reproduce import reproduce
+from tdof20.formats import write_png
+from tdof20.formats.io import check_output_file
+from tdof20.methods.registry import get_method, method_names, parse_set_options
+from tdof20.objects import all_objects, export_models, object_names
 from tdof20.progress import console
+from tdof20.scoring.scoring import score_command
+from tdof20.sim.lab import DIRECTIONS, clutter_names
+from tdof20.sim.scenes import get_scene, scene_ids
+from tdof20.viz import session_contact_sheet
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Build and benchmark 6DoF pose datasets of transparent objects (TDoF20).")
@@ -78,8 +102,6 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
 def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, step_deg: float, arm_positions: int,
                     width: int, height: int, seed: int, clutter: str = "", direction: str = "ccw",
                     record_direction: bool = True, hand_eye_error: str = "", step_jitter: float = 0.0):
-    from tdof20.capture import load_config, sim_config
-
     if config is not None and sim:
         raise TdofError("give either a CONFIG file or --sim, not both")
     if config is None and not sim:
@@ -93,7 +115,6 @@ def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, s
                             f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg) and "
                             f"[turntable] direction")
         return load_config(config)
-    from tdof20.sim.lab import DIRECTIONS, clutter_names
 
     names = [c for c in clutter.replace(" ", "").split(",") if c]
     bad = [c for c in names if c not in clutter_names()]
@@ -137,10 +158,6 @@ def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: st
                  json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
     """Print the sequence a session will run and its estimated duration; checks every arm target
     against the workspace limits. Touches no hardware."""
-    import json
-
-    from tdof20.capture import describe
-
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
                           direction, record_direction, hand_eye_error, step_jitter)
     d = describe(cfg)
@@ -165,8 +182,6 @@ def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: st
                           f"({est['per_frame_s']:.2f} s a frame, {est['arm_moves_s']:.0f} s of arm moves; "
                           f"the operator's swap between phases not counted)")
     if not d["ok"]:
-        from tdof20.capture import check_workspace
-
         check_workspace(cfg)  # raises the one-line refusal
 
 
@@ -179,10 +194,6 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
                 hand_eye_error: str = HAND_EYE_ERROR, step_jitter: float = STEP_JITTER,
                 yes: bool = typer.Option(False, "--yes", help="do not wait for the operator (scripted runs)")) -> None:
     """Run (or resume) a capture session and write the raw session format."""
-    import shlex
-
-    from tdof20.capture import run_capture
-
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
                           direction, record_direction, hand_eye_error, step_jitter)
     resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -196,8 +207,6 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
 def capture_verify(session: Path = typer.Argument(..., help="raw session folder")) -> None:
     """Check a session: every planned frame present, files decodable, of session.json's camera size
     and matching their checksums, depths in millimetres (what annotate would refuse)."""
-    from tdof20.capture import verify_session
-
     problems = verify_session(session)
     if problems:
         for p in problems[:200]:
@@ -214,8 +223,6 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
 @objects_app.command("list")
 def objects_list() -> None:
     """Print the catalog (TDoF20's 20 classes): id, name, kind, size, capacity, diameter, symmetry."""
-    from tdof20.objects import all_objects
-
     t = Table(title="tdof20 object catalog: TDoF20's classes (mm; the number in a name is its capacity in ml)")
     for c in ("id", "name", "kind", "size x*y*z", "capacity ml", "diameter", "symmetry", "faces"):
         t.add_column(c, justify="right" if c in ("id", "capacity ml", "diameter", "faces") else "left",
@@ -235,8 +242,6 @@ def objects_list() -> None:
 def objects_export(out: Path = typer.Argument(..., help="folder for the BOP models (created)"),
                    ids: Optional[str] = typer.Option(None, help="comma-separated object ids (default: all)")) -> None:
     """Write a BOP models folder: obj_000001.ply ... (mm) and models_info.json."""
-    from tdof20.objects import export_models
-
     path = export_models(out, _ids(ids))
     console.print(f"wrote BOP models to {path}", markup=False)
 
@@ -245,10 +250,7 @@ def objects_export(out: Path = typer.Argument(..., help="folder for the BOP mode
 def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
                     tile: int = typer.Option(200, help="tile width in pixels")) -> None:
     """Render all 20 objects, glass and opaque twin, into one picture."""
-    from tdof20.formats import write_png
     from tdof20.sim.gallery import catalog_picture
-
-    from tdof20.formats.io import check_output_file
 
     if not 16 <= tile <= 1024:
         raise TdofError(f"--tile must be in 16..1024 pixels, got {tile}")
@@ -262,10 +264,6 @@ def objects_picture(out: Path = typer.Argument(..., help="PNG file to write"),
 def sim_scenes() -> None:
     """List the 40 TDoF20 scenes of the simulator (single/<class>, multi/00..19) with their numeric (BOP)
     scene ids, objects and stickers; TDoF20-hard tests on multi/02, 08, 09, 10, 11, 15."""
-    from tdof20.dataset.splits import HARD_TEST_MULTI
-    from tdof20.objects import object_names
-    from tdof20.sim.scenes import get_scene, scene_ids
-
     names = object_names()
     t = Table(title="simulated TDoF20 scenes")
     for c in ("scene", "id", "objects", "sticker", "hard"):
@@ -292,8 +290,6 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
         angle_list = []
     if not angle_list or not all(abs(a) <= 3600 for a in angle_list):  # nan and inf fail the bound too
         raise TdofError(f"--angles must be comma-separated numbers of degrees (|a| <= 3600), got '{angles}'")
-    from tdof20.capture import sim_config
-    from tdof20.capture.rig import build_rig
 
     renderer = build_rig(sim_config(scene, width=width, height=height, seed=seed)).world.renderer
     sheet = render_frames(renderer, out, arm, angle_list)
@@ -316,12 +312,8 @@ def sim_sheet(session: Path = typer.Argument(..., help="raw session folder"),
               out: Optional[Path] = typer.Option(None, help="PNG to write (default: SESSION/contact_sheet.png)"),
               frames: int = typer.Option(4, help="number of frames (rows)")) -> None:
     """Contact sheet of a raw session: colour and depth of both phases, truth masks if present."""
-    from tdof20.formats import write_png
-    from tdof20.viz import session_contact_sheet
-
     if not 1 <= frames <= 100:
         raise TdofError(f"--frames must be in 1..100, got {frames}")
-    from tdof20.formats.io import check_output_file
 
     out = check_output_file(out or session / "contact_sheet.png", "--out", "PNG file")
     write_png(out, session_contact_sheet(session, frames))
@@ -340,21 +332,9 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
                   split: Optional[str] = typer.Option(None, "--split", help="with --layout bop: the protocol (simple "
                                                       "or hard) whose train and test parts become train/ and test/")) -> None:
     """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
-    from tdof20.dataset.build import build_bop_dataset, build_dataset
+    from tdof20.dataset.build import build_dataset_in_layout
 
-    if layout not in ("tdof20", "bop"):
-        raise TdofError(f"--layout must be tdof20 or bop, got '{layout}'")
-    if layout == "bop":
-        if split is None:
-            raise TdofError("--layout bop needs --split simple or --split hard (the protocol whose train and test "
-                            "parts become train/ and test/)")
-        if add:
-            raise TdofError("--add grows a tdof20-layout dataset; build a BOP layout from the full scene list")
-        s = build_bop_dataset(scenes, out, split)
-    elif split is not None:
-        raise TdofError("--split is for --layout bop (a tdof20-layout dataset holds both protocols)")
-    else:
-        s = build_dataset(scenes, out, add=add)
+    s = build_dataset_in_layout(layout, scenes, out, split=split, add=add)
     _print_stats(s)
     console.print(f"dataset in {out}", markup=False)
 
@@ -363,10 +343,6 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
 def dataset_stats(root: Path = typer.Argument(..., help="dataset root"),
                   json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
     """Counts per split, scene and object (the paper's figures beside the splits)."""
-    import json
-
-    from tdof20.dataset.build import stats
-
     s = stats(root)
     if json_out:
         print(json.dumps(s, indent=2))
@@ -382,8 +358,6 @@ def dataset_pack(root: Path = typer.Argument(..., help="dataset root"),
                  cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
                                                           "lacks is rendered to (default ROOT/.cache)")) -> None:
     """Write what training reads (colour, depths, masks, poses, camera) into one HDF5 file."""
-    from tdof20.dataset.build import pack
-
     pack(root, split, part, out, cache_dir=cache_dir)
     console.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)", markup=False)
 
@@ -399,8 +373,6 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
                                                                "separated: single/<class>, multi/NN")) -> None:
     """Import the released TDoF20 (its documented layout) as a tdof20 dataset: released splits, depth
     modes raw/stabilized/restored, masks, models in mm, the released keypoints (docs/tdof20_release.md)."""
-    from tdof20.dataset.importer import import_tdof20
-
     if out is None and not check:
         raise TdofError("give --out ROOT to import, or --check to only read and check the release")
     names = [x.strip() for x in scenes.split(",") if x.strip()] if scenes else None
@@ -431,8 +403,6 @@ def dataset_import_tdof20(src: Path = typer.Argument(..., help="the released TDo
 
 
 def _print_stats(s: dict) -> None:
-    from tdof20.dataset.splits import PAPER_HARD, PAPER_SIMPLE
-
     t = Table(title=f"{s.get('layout', 'tdof20')} layout: {s['scenes']} scenes, {s['images']} images")
     sp = s["splits"]
     if "split_folders" in s:
@@ -506,8 +476,6 @@ def annotate_evaluate(scene: Path = typer.Argument(..., help="annotated scene fo
                       max_frames: Optional[int] = typer.Option(None, "--max-frames", help="evaluate at most this many frames"),
                       points: int = typer.Option(2000, "--points", help="surface samples per model")) -> None:
     """Compare labels with the simulator's truth: motions, surface distance, mask IoU (JSON)."""
-    from tdof20.annotate.evaluate import evaluate_command
-
     print(evaluate_command(scene, truth, max_frames=max_frames, n_points=points))
 
 
@@ -525,8 +493,6 @@ def _image_size(text: Optional[str]) -> Optional[tuple[int, int]]:
 
 def _method_help(short: bool = False) -> str:
     """The registered methods (the registry imports no torch: --help stays fast)."""
-    from tdof20.methods.registry import get_method, method_names
-
     if short:
         return ", ".join(method_names())
     return "; ".join(f"{n}: {get_method(n).description}" for n in method_names())
@@ -551,9 +517,9 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               lr_schedule: Optional[str] = typer.Option(None, help="cosine or step \\[cosine]"),
               depth_mode: Optional[str] = typer.Option(None, help="input depth of an RGB-D method: raw, filled or "
                                                        "restored (privileged) \\[filled]"),
-              fuse_stages: Optional[int] = typer.Option(None, help="hff6dof: encoder stages fused (1-5) [3]"),
-              seg_head: Optional[bool] = typer.Option(None, "--seg-head/--no-seg-head",
-                                                      help="hff6dof: the segmentation head \\[on]"),
+              set_options: Optional[list[str]] = typer.Option(
+                  None, "--set", metavar="KEY=VALUE", help="an option of the method's config (repeatable; the value "
+                  "as in TOML, e.g. --set fuse_stages=2); over --config's \\[method]"),
               device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
               amp: Optional[bool] = typer.Option(None, "--amp/--no-amp", help="mixed precision (default: on CUDA)"),
               workers: Optional[int] = typer.Option(None, help="data-loading worker processes [2]"),
@@ -569,12 +535,14 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               part: str = typer.Option("train", "--part", help="train (the split's whole train part) or train-val "
                                        "(the train part minus its validation part, for choices made on --part val)")
               ) -> None:
-    from tdof20.methods.registry import get_method
-    from tdof20.methods.train import TrainOptions, is_main_process, load_train_config, train
+    from tdof20.methods.devices import is_main_process
+    from tdof20.methods.train import TrainOptions, load_train_config, train
 
     try:
         m = get_method(method)
         opts, mcfg = load_train_config(config, m) if config is not None else (TrainOptions(), None)
+        if set_options:
+            mcfg = m.with_options(mcfg or m.default_config(), parse_set_options(set_options), "--set")
         size = opts.image_size
         size = "method" if not size else (None if tuple(size) == (0, 0) else tuple(size))
         if image_size is not None:
@@ -586,7 +554,7 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
         train(dataset, split, out, method=m.name, method_config=mcfg, image_size=size,
               batch_size=pick(batch_size, opts.batch_size), epochs=pick(epochs, opts.epochs), lr=pick(lr, opts.lr),
               lr_schedule=pick(lr_schedule, opts.lr_schedule), weight_decay=opts.weight_decay,
-              depth_mode=depth_mode, fuse_stages=fuse_stages, seg_head=seg_head, device=device, amp=amp,
+              depth_mode=depth_mode, device=device, amp=amp,
               num_workers=pick(workers, opts.num_workers),
               max_steps=pick(max_steps, opts.max_steps if opts.max_steps > 0 else None),
               seed=pick(seed, opts.seed), backbone_weights=backbone_weights, shard=shard,
@@ -605,10 +573,10 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train M
                 device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps"),
                 batch_size: int = typer.Option(1, help="images per forward pass"),
                 workers: int = typer.Option(2, help="data-loading worker processes"),
-                masks: Optional[str] = typer.Option(None, help="hff6dof: auto, network or gt (oracle masks; not a "
-                                                    "valid submission) \\[the run's: auto]"),
-                voting: Optional[str] = typer.Option(None, help="hff6dof: bearing (every pixel) or 3d (pixels with "
-                                                     "depth) \\[the run's: bearing]"),
+                set_options: Optional[list[str]] = typer.Option(
+                    None, "--set", metavar="KEY=VALUE", help="a prediction option of the run's method config "
+                    "(repeatable; the value as in TOML), e.g. hff6dof's --set masks=gt (oracle masks: not a valid "
+                    "submission) or --set voting=3d \\[the run's]"),
                 part: str = typer.Option("test", "--part", help="test, or val: the validation part of the split's "
                                          "train part (where choices are made)"),
                 cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="where restored depth the dataset "
@@ -619,8 +587,8 @@ def predict_cmd(run: Path = typer.Argument(..., help="run folder (tdof20 train M
     per-image times and, beside it, <stem>_info.json (method, its config, depth mode, timings)."""
     from tdof20.methods.predict import predict
 
-    predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, masks=masks,
-            voting=voting, seed=seed, part=part, cache_dir=cache_dir)
+    predict(run, dataset, split, out, device=device, batch_size=batch_size, num_workers=workers, seed=seed,
+            part=part, cache_dir=cache_dir, method_options=parse_set_options(set_options or ()))
 
 
 # ----------------------------------------------------------------------------------- benchmark
@@ -639,13 +607,9 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
                     ) -> None:
     """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC, and BOP19's VSD, MSSD,
     MSPD and AR; per object, per scene and mean."""
-    from tdof20.scoring.scoring import score_command
-
     if part not in ("test", "val"):
         raise TdofError(f"--part must be test or val, got '{part}'")
     if part == "val":
-        from tdof20.dataset.validation import write_val_targets
-
         if split is None or targets is not None:
             raise TdofError("--part val scores against the validation targets of --split: give --split, not --targets")
         split, targets = None, write_val_targets(dataset, split)
@@ -663,10 +627,7 @@ def benchmark_profile(method: str = typer.Argument(..., help="a registered metho
                       batch_size: int = typer.Option(1, help="images per forward pass")) -> None:
     """Table 3: parameters, multiply-adds at 480x640, latency and FPS (network and pose recovery apart) on
     this device, beside the paper's figures and the originals' parameter counts (untrained networks)."""
-    import json
-
     from tdof20.methods.profile import format_profile, format_table, profile
-    from tdof20.methods.registry import get_method
 
     if method.strip().lower() != "all":
         get_method(method)  # an unknown method: one line listing the known ones, before any work
@@ -698,8 +659,6 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
     score HFF6DoF and PVNet side by side, OUT/report.md (about 3 minutes measured on 2 idle CPU
     cores with the defaults; a rerun resumes)."""
-    from tdof20.experiments.demo import parse_methods, run_demo
-
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:
         raise TdofError("--scenes needs at least one scene name")
@@ -730,8 +689,6 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
     both protocols (on the train part minus its validation part), choose epochs and options on
     validation, predict and score the test part, profile, OUT/tables/tables.md (+ CSV, JSON,
     plots); resumable. See docs/reproduce.md."""
-    from tdof20.experiments.reproduce import reproduce
-
     reproduce(out, preset=preset, config=config, dataset=dataset)
 
 

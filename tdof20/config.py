@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Iterable, NoReturn, TypeVar
 
 from tdof20.errors import TdofError
+from tdof20.formats.io import read_toml
 
 T = TypeVar("T")
 
@@ -112,8 +113,6 @@ def config_from_data(cls: type[T], data: Any, source: str | Path = "") -> T:
 def load_config_file(cls: type[T], path: str | Path, what: str = "config file") -> T:
     """Read a TOML file into the dataclass ``cls``; a missing, unreadable or malformed file, an
     unknown key or a wrong value is one TdofError naming the file."""
-    from tdof20.formats.io import read_toml
-
     return config_from_data(cls, read_toml(path, what), str(path))
 
 

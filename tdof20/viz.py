@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from tdof20.errors import TdofError
+from tdof20.formats import RawSession, read_scene
 
 
 def depth_to_colour(depth_mm: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
@@ -98,8 +99,6 @@ def contact_sheet(tiles: list[np.ndarray], labels: list[str] | None = None, cols
 def session_contact_sheet(session_dir, n_frames: int = 4, tile_width: int = 256) -> np.ndarray:
     """Contact sheet of a raw session: per frame the colour and depth of each phase, and the
     truth's visible masks when the session has truth/ (simulated sessions)."""
-    from tdof20.formats import RawSession, read_scene
-
     s = RawSession.open(session_dir)
     info = s.info
     keys = [k for k in s.frames("transparent")] or [k for k in s.frames()]

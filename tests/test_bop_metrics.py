@@ -246,7 +246,7 @@ def test_mssd_and_mspd_equal_the_straightforward_loops(obj_id):
     sub = M.ModelPoints(pts[::3], m.diameter, m.symmetric, sym_R=sR, sym_t=st)
     fp = M.mspd_fast(sub, Re, te, Rg, tg, Ks)
     np.testing.assert_allclose(fp.lo, ref_p, rtol=1e-9, atol=1e-9)
-    # the one-pose reference functions of metrics.py agree too
+    # the one-pose reference functions (metrics.mssd_mspd) agree too
     for i in (0, B // 2, B - 1):
         assert M.mssd(Re[i], te[i], Rg[i], tg[i], pts, (sR, st)) == pytest.approx(ref_s[i], rel=1e-12)
         assert M.mspd(Re[i], te[i], Rg[i], tg[i], K, pts[::3], (sR, st)) == pytest.approx(ref_p[i], rel=1e-12)

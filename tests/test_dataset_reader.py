@@ -337,3 +337,193 @@ def test_layout_bop_reads_back_the_frames_and_poses(annotated, protocol, tmp_pat
     assert rc == 2 and "another protocol" in err
     rc, err, _ = cli(capsys, "dataset", "build", *scenes, "--out", tmp_path / "x", "--layout", "bop")
     assert rc == 2 and "--layout bop needs --split" in err
+
+
+# ---------------------------------------------------------------------------------------------
+# the layouts' interface and registry
+# ---------------------------------------------------------------------------------------------
+def test_a_new_layout_is_one_registered_class(bop, tmp_path, monkeypatch):
+    """A layout of its own: one DatasetReader subclass, registered with one line, is detected and opened,
+    and the shared members (scenes, images, keypoints, depth, stats) work through it."""
+    import shutil
+    from pathlib import Path
+
+    from tdof20.dataset import layouts
+    from tdof20.dataset.build import stats
+    from tdof20.dataset.layouts.base import DatasetReader
+
+    monkeypatch.setattr(layouts, "LAYOUTS", dict(layouts.LAYOUTS))  # the registry as it was, after the test
+
+    class FlatReader(DatasetReader):
+        """ROOT/flat.json {"scenes": {id: name}}; ROOT/scenes/{id:06d}/; one split 'all', every image in both parts."""
+
+        layout = "flat"
+        info_file = "flat.json"
+        split_hint = "all"
+
+        @classmethod
+        def detect(cls, root: Path) -> bool:
+            return (root / "flat.json").is_file()
+
+        def _read_info(self) -> dict:
+            return json.loads((self.root / "flat.json").read_text())
+
+        def splits(self):
+            return ["all"]
+
+        def check_split(self, split):
+            if split not in (None, "all"):
+                raise TdofError(f"unknown split '{split}'", self.root)
+            return "all"
+
+        def scene_folder(self, split):
+            return None
+
+        def _scenes_root(self, split=None):
+            return self.root / "scenes"
+
+        def _default_scene_name(self, scene_id, split):
+            return f"flat/{scene_id}"
+
+        def targets_split(self):
+            return None
+
+        def targets_path(self, split=None):
+            return self.root / "targets.json"
+
+        def _frames_of(self, split, part):
+            return [(s, i) for s in self.scene_ids() for i in self.image_ids(s)]
+
+        def _cache_key(self, split):
+            return "scenes"
+
+        def check_train_split(self, split):
+            return self.check_split(split)
+
+        def part_frames(self, split, part, purpose):
+            return self.frames(split, part)
+
+        def empty_part_text(self, split, part):
+            return "the dataset has no images"
+
+        def scoring_targets_path(self, split):
+            return self.targets_path()
+
+        def stats_folders(self):
+            return [None]
+
+        def split_counts(self):
+            return {"all": len(self.frames("all"))}
+
+    root = tmp_path / "flat"
+    shutil.copytree(bop["root"] / "train_pbr" / "000000", root / "scenes" / "000007")
+    shutil.copytree(bop["root"] / "models", root / "models")
+    (root / "flat.json").write_text(json.dumps({"scenes": {"7": "seven"}}))
+    with pytest.raises(TdofError, match="not a dataset"):
+        layouts.open_dataset(root)
+    assert layouts.register_layout(FlatReader) is FlatReader  # the one line a layout adds
+    assert list(layouts.LAYOUTS) == ["tdof20", "bop", "flat"]
+    assert layouts.detect_layout(root) == "flat" and layouts.detect_layout(bop["root"]) == "bop"
+    ds = open_dataset(root, "all")
+    assert isinstance(ds, FlatReader) and ds.split == "all" and ds.layout == "flat"
+    assert not ds.uses_catalog_ids and not ds.has_validation_arcs
+    assert ds.scene_ids() == [7] and ds.scene_name(7) == "seven" and ds.obj_ids == list(OBJ_IDS)
+    assert ds.frames() == [(7, i) for i in range(4)] and ds.scene(7).rgb(0).shape == (48, 64, 3)
+    assert ds.depth_modes() == ("raw", "filled", "restored") and sorted(ds.keypoints()) == list(OBJ_IDS)
+    assert ds.depth_mm(7, 0).shape == (48, 64)
+    s = stats(root)
+    assert s["layout"] == "flat" and s["images"] == 4 and s["splits"] == {"all": 4}
+    assert ds.describe()["layout"] == "flat"
+    with pytest.raises(ValueError, match="already registered"):
+        layouts.register_layout(type("Other", (FlatReader,), {}))
+    with pytest.raises(TypeError):
+        layouts.register_layout(dict)
+
+
+def test_the_layouts_answer_the_decisions_callers_ask(bop, annotated, tmp_path):
+    """The members that replace checks of the layout's name: catalog ids, scene folders, the split a
+    training names, a part's frames with their one-line errors, validation arcs, the scorer's hints."""
+    import shutil
+
+    from tdof20.dataset.build import build_dataset
+    from tdof20.dataset.splits import SPLIT_PART_SCENES
+
+    b = open_dataset(bop["root"])
+    assert not b.uses_catalog_ids and not b.has_validation_arcs and b.split_hint == "a split folder such as test"
+    assert b.scene_folder("test") == "test" and b.check_train_split("train_pbr") == "train_pbr"
+    with pytest.raises(TdofError, match="give a split"):
+        b.scene_folder(None)
+    assert b.part_frames("train_pbr", "train", "train on") == b.frames("train_pbr", "train")
+    assert b.scoring_targets_path("test") == bop["root"] / "test_targets_bop19.json"
+    with pytest.raises(TdofError, match="holds the targets of the split folder test/, not train_pbr/"):
+        b.scoring_targets_path("train_pbr")
+    empty = tmp_path / "bop_empty"
+    shutil.copytree(bop["root"], empty)
+    (empty / "test_targets_bop19.json").write_text("[]")
+    with pytest.raises(TdofError) as e:
+        open_dataset(empty).part_frames("test", "test", "predict")
+    assert str(e.value) == f"{empty}: the split folder test/ of this dataset has no test images: nothing to predict"
+
+    base, scenes = annotated
+    root = base / "single_only"
+    if not root.exists():
+        build_dataset(scenes[:1], root, show_progress=False)  # single/01 only: no hard test scene
+    t = open_dataset(root)
+    assert t.uses_catalog_ids and t.has_validation_arcs and t.split_hint == "simple or hard"
+    assert t.scene_folder("simple") is None and t.check_train_split("hard") == "hard"
+    with pytest.raises(TdofError, match="^--split must be one of simple, hard, got 'x'$"):
+        t.check_train_split("x")
+    assert t.part_frames("simple", "train", "train on") == t.frames("simple", "train")
+    with pytest.raises(TdofError) as e:
+        t.part_frames("hard", "test", "predict")
+    assert str(e.value) == (f"{root}: the hard split's test part of this dataset is empty (splits/hard_test.json "
+                            f"lists no images; it takes {SPLIT_PART_SCENES[('hard', 'test')]}): nothing to predict")
+    with pytest.raises(TdofError, match="split must be one of"):
+        t.part_frames("val", "test", "predict")
+    assert t.scoring_targets_path("hard") == root / "test_targets_hard.json"
+    assert t.no_targets_reason("hard").startswith(": the dataset has 1 single-object and 0 multi-object scenes")
+    assert "hard tests on multi-object scenes multi/02" in t.empty_part_text("hard", "test")
+
+
+def test_build_dataset_in_layout_checks_the_options_then_writes(annotated, tmp_path):
+    from tdof20.dataset.build import WRITERS, build_dataset_in_layout
+
+    assert list(WRITERS) == ["tdof20", "bop"]
+    none = [tmp_path / "no_scene"]
+    for layout, kw, msg in (("coco", {}, "--layout must be tdof20 or bop, got 'coco'"),
+                            ("bop", {}, "--layout bop needs --split simple or --split hard"),
+                            ("bop", {"split": "simple", "add": True}, "--add grows a tdof20-layout dataset"),
+                            ("tdof20", {"split": "simple"}, "--split is for --layout bop")):
+        with pytest.raises(TdofError, match=msg.replace("(", r"\(")):
+            build_dataset_in_layout(layout, none, tmp_path / "out", **kw)
+    assert not (tmp_path / "out").exists()
+    _, scenes = annotated
+    s = build_dataset_in_layout("tdof20", scenes, tmp_path / "t", show_progress=False)
+    assert s["layout"] == "tdof20" and open_dataset(tmp_path / "t").layout == "tdof20"
+    s = build_dataset_in_layout("bop", scenes, tmp_path / "b", split="hard", show_progress=False)
+    assert s["layout"] == "bop" and open_dataset(tmp_path / "b").splits() == ["test", "train"]
+
+
+def test_no_module_outside_the_layouts_decides_on_a_layout_name():
+    """A layout's name is for display only: outside tdof20/dataset/layouts/ no code compares a
+    ``layout`` (a variable or an attribute) with ==, !=, in or not in."""
+    import ast
+    from pathlib import Path
+
+    pkg = Path(__file__).resolve().parents[1] / "tdof20"
+    own = pkg / "dataset" / "layouts"
+
+    def is_layout(node) -> bool:
+        return (isinstance(node, ast.Name) and node.id == "layout") or \
+            (isinstance(node, ast.Attribute) and node.attr == "layout")
+
+    found: dict[str, list[int]] = {}
+    for path in sorted(pkg.rglob("*.py")):
+        if own in path.parents:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Compare) and \
+                    any(isinstance(op, (ast.Eq, ast.NotEq, ast.In, ast.NotIn)) for op in node.ops) and \
+                    any(is_layout(x) for x in [node.left, *node.comparators]):
+                found.setdefault(path.relative_to(pkg.parent).as_posix(), []).append(node.lineno)
+    assert found == {}

@@ -159,7 +159,7 @@ def test_add_refusals_leave_the_dataset_as_it_was(scenes, tmp_path, capsys):
 
 def test_an_interrupted_build_resumes_and_blocks_other_builds(scenes, tmp_path, monkeypatch):
     root = tmp_path / "R"
-    real = dataset_mod._copy_scene
+    real = dataset_mod.copy_scene
     calls = []
 
     def flaky(src, dst):
@@ -168,10 +168,10 @@ def test_an_interrupted_build_resumes_and_blocks_other_builds(scenes, tmp_path, 
             raise KeyboardInterrupt
         real(src, dst)
 
-    monkeypatch.setattr(dataset_mod, "_copy_scene", flaky)
+    monkeypatch.setattr(dataset_mod, "copy_scene", flaky)
     with pytest.raises(KeyboardInterrupt):
         build_dataset([scenes["single/12"], scenes["multi/08"]], root, show_progress=False)
-    monkeypatch.setattr(dataset_mod, "_copy_scene", real)
+    monkeypatch.setattr(dataset_mod, "copy_scene", real)
     assert (root / BUILD_MARKER).exists() and not (root / "dataset_info.json").exists()
     with pytest.raises(TdofError, match="an unfinished build of other scenes is here"):
         build_dataset([scenes["single/12"]], root, show_progress=False)

@@ -9,6 +9,7 @@ import torch
 from tdof20.methods import densefusion as dfm
 from tdof20.methods.base import MethodMeta
 from tdof20.methods.data import collate
+from tdof20.methods.fitting import matrix_to_quaternion, quaternion_to_matrix
 from tests.test_ffb6d import render_item, rot_err_deg, rotation
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -32,12 +33,12 @@ def net(meta):
 def test_quaternion_round_trip():
     g = torch.Generator().manual_seed(0)
     q = torch.nn.functional.normalize(torch.randn(200, 4, generator=g, dtype=torch.float64), dim=1)
-    R = dfm.quaternion_to_matrix(q)
+    R = quaternion_to_matrix(q)
     assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(200, 3, 3), atol=1e-12)
     assert torch.allclose(torch.linalg.det(R), torch.ones(200, dtype=torch.float64))
-    assert torch.allclose(dfm.quaternion_to_matrix(dfm.matrix_to_quaternion(R)), R, atol=1e-10)
+    assert torch.allclose(quaternion_to_matrix(matrix_to_quaternion(R)), R, atol=1e-10)
     Rz = torch.from_numpy(rotation([0, 0, 1], 90))
-    assert torch.allclose(dfm.matrix_to_quaternion(Rz), torch.tensor([0.5 ** 0.5, 0, 0, 0.5 ** 0.5], dtype=torch.float64))
+    assert torch.allclose(matrix_to_quaternion(Rz), torch.tensor([0.5 ** 0.5, 0, 0, 0.5 ** 0.5], dtype=torch.float64))
 
 
 def test_forward_shapes_and_parameter_counts(meta, net):
@@ -67,7 +68,7 @@ def _per_point_predictions(meta, obj_id, R, t_mm, n=200, outliers=0.3, seed=0):
     rng = np.random.default_rng(seed)
     mp = meta.model_points[obj_id][rng.choice(len(meta.model_points[obj_id]), n)]
     cloud = (mp @ R.T + t_mm) / 1000.0
-    q = dfm.matrix_to_quaternion(torch.from_numpy(R))
+    q = matrix_to_quaternion(torch.from_numpy(R))
     quat = q.expand(n, 4).clone()
     trans = torch.from_numpy(t_mm / 1000.0 - cloud)
     conf = torch.from_numpy(rng.uniform(0.5, 0.9, n))
@@ -106,7 +107,7 @@ def test_refinement_composes_the_corrections(meta, net):
         def forward(self, x, emb, cls):
             self.calls += 1
             Rc, tc = kabsch_torch(model[None], x)
-            return dfm.matrix_to_quaternion(Rc), tc
+            return matrix_to_quaternion(Rc), tc
 
     real = net.refiner
     try:

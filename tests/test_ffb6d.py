@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tdof20.methods import ffb6d
+from tdof20.methods import ffb6d, ffb6d_pose
 from tdof20.methods.base import MethodMeta
 from tdof20.methods.data import collate
 from tdof20.methods.randla import knn, knn_numpy, point_pyramid
@@ -169,7 +169,7 @@ def test_meanshift_recovers_a_known_pose_with_30_percent_outliers(meta):
         C.append(np.full(len(pts), meta.class_of(obj)))
     P, O, C = (torch.from_numpy(np.stack(a)) for a in (P, O, C))
     kps = torch.from_numpy(meta.keypoint_array())
-    rows = ffb6d.recover_poses(P.float(), C, O[:, :, 0].float(), O[:, :, 1:].permute(0, 2, 1, 3).float(),
+    rows = ffb6d_pose.recover_poses(P.float(), C, O[:, :, 0].float(), O[:, :, 1:].permute(0, 2, 1, 3).float(),
                                kps.float(), bandwidth=40.0, generator=torch.Generator().manual_seed(0))
     assert [(b, c) for b, c, *_ in rows] == [(0, 1), (1, 2)]
     for (b, c, score, R, t), (R_gt, t_gt) in zip(rows, poses):
@@ -185,10 +185,10 @@ def test_meanshift_mode_and_inliers():
     pts = torch.cat([a, b])[None]
     valid = torch.ones(1, 400, dtype=torch.bool)
     valid[0, :10] = False
-    mode, inl = ffb6d.meanshift(pts, valid, bandwidth=20.0)
+    mode, inl = ffb6d_pose.meanshift(pts, valid, bandwidth=20.0)
     assert (mode[0] - a[10:].mean(0)).norm() < 1.0
     assert inl[0, 10:300].all() and not inl[0, 300:].any() and not inl[0, :10].any()
-    empty, _ = ffb6d.meanshift(pts, torch.zeros_like(valid), bandwidth=20.0)
+    empty, _ = ffb6d_pose.meanshift(pts, torch.zeros_like(valid), bandwidth=20.0)
     assert torch.isnan(empty).all()
 
 
@@ -201,7 +201,7 @@ def test_meanshift_with_fewer_votes_than_seeds_and_mixed_groups():
     valid[0, [5, 100, 599]] = True
     valid[2] = True
     stats: dict = {}
-    mode, inl = ffb6d.meanshift(pts, valid, bandwidth=40.0, stats=stats)
+    mode, inl = ffb6d_pose.meanshift(pts, valid, bandwidth=40.0, stats=stats)
     assert torch.allclose(mode[0].double(), pts[0, [5, 100, 599]].median(0).values, atol=1e-3)
     assert torch.isnan(mode[1]).all() and not inl[1].any()
     assert (mode[2].double() - pts[2].mean(0)).norm() < 0.5 and inl[2].all() and inl[0].sum() == 3
@@ -213,11 +213,11 @@ def test_recovery_of_a_480x640_vote_set_does_bounded_work():
     work bounded by seeds x seed votes x seed iterations + the winner's iterations over all votes (the
     old all-votes-as-seeds MeanShift computed 4,000^2 kernel entries per cluster and iteration)."""
     meta3 = MethodMeta.from_catalog((1, 2, 3), image_size=(480, 640))
-    v = ffb6d.example_votes(meta3, 12800, object_share=0.6, outliers=0.3, seed=3)
+    v = ffb6d_pose.example_votes(meta3, 12800, object_share=0.6, outliers=0.3, seed=3)
     assert v["points"].shape == (1, 12800, 3) and v["kp_ofs"].shape == (1, 8, 12800, 3)
     cfg = ffb6d.FFB6DConfig()
     stats: dict = {}
-    rows = ffb6d.recover_poses(v["points"], v["classes"], v["ctr_ofs"], v["kp_ofs"], v["model_kps"],
+    rows = ffb6d_pose.recover_poses(v["points"], v["classes"], v["ctr_ofs"], v["kp_ofs"], v["model_kps"],
                                cfg.bandwidth_mm, cfg.meanshift_iters, cfg.max_votes, cfg.min_points,
                                torch.Generator().manual_seed(0), stats=stats)
     assert sorted(c for _, c, *_ in rows) == [1, 2, 3]

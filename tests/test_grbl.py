@@ -10,11 +10,13 @@ import pytest
 from tdof20.capture.hardware.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblError, GrblTurntable,
                                           describe_alarm, describe_error, parse_status)
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
+from tdof20.capture.hardware.grbl_timing import move_time
 from tdof20.capture.hardware.interfaces import HardwareError
 
 pytestmark = pytest.mark.timeout(20)
 
 SPEED = 360.0          # emulator max rate, units/s
+ACCEL = 3600.0         # emulator acceleration, units/s² (GRBL's own default ratio would be 432)
 
 
 @pytest.fixture
@@ -23,6 +25,7 @@ def emu_factory():
 
     def make(**kw) -> GrblEmulator:
         kw.setdefault("speed_units_per_s", SPEED)
+        kw.setdefault("accel_units_per_s2", ACCEL)
         kw.setdefault("homing_s", 0.1)
         emu = GrblEmulator(**kw).start()
         made.append(emu)
@@ -66,7 +69,7 @@ def test_connect_home_and_moves_take_the_emulated_time(emu_factory):
         assert emu.state == "Idle"
         previous = 0.0
         for target in (90.0, 45.0, 180.0, 0.9):
-            expected = abs(target - previous) / SPEED
+            expected = move_time(target - previous, SPEED, ACCEL)
             t = time.monotonic()
             got = table.move_to(target, timeout_s=3.0)
             dt = time.monotonic() - t
@@ -89,7 +92,8 @@ def test_units_per_degree_scales_commands_and_reports(emu_factory):
         t = time.monotonic()
         assert table.move_to(36.0, timeout_s=3.0) == pytest.approx(36.0, abs=0.005)
         dt = time.monotonic() - t
-        assert 0.9 * 90 / 250 <= dt <= 90 / 250 + 0.3          # 90 units at 250 units/s
+        expected = move_time(90, 250, ACCEL)
+        assert 0.9 * expected <= dt <= expected + 0.3          # 90 units at up to 250 units/s
         assert emu.wpos[0] == pytest.approx(90.0, abs=0.005)
         assert "G90 G1 X90.0000 F15000.000" in emu.received    # 100 deg/s * 2.5 * 60
         assert table.angle() == pytest.approx(36.0, abs=0.005)
@@ -343,7 +347,7 @@ def test_emulator_speaks_grbl(emu_factory):
         assert ask("G2 X1 Y1 I1") == ["error:20"]            # arcs unsupported here
         assert ask("$Q") == ["error:3"] and ask("X1Q2") == ["error:20"] and ask("1") == ["error:1"]
         assert ask("G91 G0 X10 (comment)") == ["ok"]
-        time.sleep(0.1)
+        time.sleep(move_time(10, SPEED, ACCEL) + 0.05)
         assert status().mpos[0] == pytest.approx(10.0)
         assert ask("G92 X0") == ["ok"]
         st = status()

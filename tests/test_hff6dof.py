@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from tdof20.errors import TdofError
-from tdof20.methods.hff6dof import (HFF6DoF, count_macs, count_parameters, fill_depth_holes,
-                                    geometry_map)
+from tdof20.methods.data import fill_depth_holes
+from tdof20.methods.hff6dof import HFF6DoF, count_macs, count_parameters, geometry_map
 from tdof20.methods.losses import hff_loss
 from tdof20.methods.resnet import STAGE_CHANNELS, ResNet34, load_torchvision_state_dict
 

@@ -162,17 +162,17 @@ def test_resume_redoes_only_what_is_missing(session, labelled, tmp_path):
 
 
 def test_each_process_builds_its_ray_caster_once(session, tmp_path, monkeypatch):
-    import tdof20.annotate.labels as labels
+    import tdof20.annotate.label as label
 
     built = []
-    original = labels.ModelRaycaster
+    original = label.ModelRaycaster
 
     class Counting(original):
         def __init__(self, *a, **k):
             built.append(1)
             super().__init__(*a, **k)
 
-    monkeypatch.setattr(labels, "ModelRaycaster", Counting)
+    monkeypatch.setattr(label, "ModelRaycaster", Counting)
     T, P, M = truth_inputs(session)
     s = label_scene(session, tmp_path / "scene", T, P, M, LabelConfig(workers=1, chunk=1), progress=False)
     assert s["labelled"] == ARMS * STEPS and len(built) == 1  # 8 chunks, one ray caster

@@ -15,6 +15,7 @@ import torch
 from tdof20.errors import TdofError
 from tdof20.methods import registry
 from tdof20.methods.base import MethodMeta
+from tdof20.methods.contract import PoseMethod, ReproduceSettings
 from tdof20.methods.data import collate
 from tdof20.methods.profile import count_macs, example_batch, format_profile, format_table, profile, \
     profile_method, synthetic_item, synthetic_meta, train_speed
@@ -38,19 +39,49 @@ def tiny_cfg(m: registry.Method):
 
 def test_registry_lists_the_methods_and_stays_torch_free():
     names = registry.method_names()
-    assert names[:2] == ["hff6dof", "pvnet"]
-    for name in EXPECTED:
-        if registry._REGISTRY[name].available:
-            assert name in names
+    assert names == list(EXPECTED)
     for name in names:
         m = registry.get_method(name)
         assert m.name == name and m.inputs in registry.INPUTS and m.description and "\n" not in m.description
         assert len(m.default_image_size) == 2
     assert registry.get_method(" PVNet ").name == "pvnet"
-    code = ("import sys, tdof20.methods.registry as r; r.method_names(); r.get_method('hff6dof').config; "
-            "assert 'torch' not in sys.modules, 'torch imported'")
+    code = ("import sys, tdof20.methods.registry as r; r.method_names(); r.get_method('hff6dof').reproduce; "
+            "import tdof20.methods.contract; assert 'torch' not in sys.modules, 'torch imported'")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
+
+
+def test_each_method_implements_the_contract():
+    """The registry holds contract objects; each record's implementation is a PoseMethod subclass
+    with its config dataclass, and the hooks the shared loops ask replace tests of a method's name."""
+    for m in registry.methods():
+        assert isinstance(m, PoseMethod) and isinstance(m.impl, PoseMethod) and not type(m.impl).__abstractmethods__
+        assert m.config_class is type(m.impl).config_class and isinstance(m.default_config(), m.config_class)
+        assert m.reproduce.label and set(m.reproduce.candidates) <= set(m.reproduce.choice_options)
+    hff = registry.get_method("hff6dof")
+    assert hff.ddp_find_unused_parameters is False and hff.labels_are_classes is True
+    assert all(m.ddp_find_unused_parameters and not m.labels_are_classes for m in registry.methods() if m is not hff)
+    assert hff.missing_run_keys({"network": {"n_classes": 21}})[:1] == ["network.n_keypoints"]
+    assert registry.get_method("pvnet").missing_run_keys({}) == ["method_config"]
+
+
+def test_set_options_are_parsed_as_toml_and_checked_as_the_config():
+    parse = registry.parse_set_options
+    assert parse(["fuse_stages=2", "seg_head=false", "masks=gt", "voting = 3d", "bearing_tol=4e-2",
+                  "decoder_channels=[8, 8, 8, 8, 8, 8]", 'backbone_weights="a b.pth"', "a.b.c=1"]) == {
+        "fuse_stages": 2, "seg_head": False, "masks": "gt", "voting": "3d", "bearing_tol": 0.04,
+        "decoder_channels": [8] * 6, "backbone_weights": "a b.pth", "a": {"b": {"c": 1}}}
+    for bad in (["fuse_stages"], ["=2"], ["a..b=1"], ["a=1", "a.b=2"]):
+        with pytest.raises(TdofError, match="--set"):
+            parse(bad)
+    m = registry.get_method("hff6dof")
+    cfg = m.with_options(m.default_config(), parse(["fuse_stages=2", "masks=gt"]), "--set")
+    assert cfg.fuse_stages == 2 and cfg.masks == "gt" and m.with_options(cfg, {}, "--set") is cfg
+    for changes, key in (({"fuse_stage": 2}, "fuse_stage"), ({"fuse_stages": "two"}, "fuse_stages"),
+                         ({"fuse_stages": 9}, "fuse_stages"), ({"masks": "oracle"}, "masks")):
+        with pytest.raises(TdofError, match=f"--set: .*{key}") as e:
+            m.with_options(cfg, changes, "--set")
+        assert "\n" not in str(e.value)
 
 
 def test_unknown_method_is_one_line_listing_the_known_ones(tmp_path):
@@ -65,7 +96,7 @@ def test_unknown_method_is_one_line_listing_the_known_ones(tmp_path):
     with pytest.raises(ValueError, match="registered already"):
         registry.register(registry.get_method("pvnet"))
     with pytest.raises(ValueError, match="'all'"):
-        registry.register(registry.Method("all", "x", "d", "rgb", "C", "T"))
+        registry.register(registry.Method("all", "d", "rgb", lambda: None, ReproduceSettings("All")))
     with pytest.raises(TdofError, match="tiny: .*fuse_stage"):
         registry.get_method("hff6dof").config_from({"fuse_stage": 2}, "tiny")
     res = subprocess.run([sys.executable, "-m", "tdof20.cli", "benchmark", "profile", "posecnn"],
@@ -221,7 +252,7 @@ def test_a_damaged_old_run_config_is_one_line(tmp_path):
 
 @pytest.mark.parametrize("version", [99, "2", 0, True])
 def test_a_run_of_an_unknown_version_is_refused(tmp_path, version):
-    from tdof20.methods.train import RUN_VERSION, read_run_config
+    from tdof20.methods.runs import RUN_VERSION, read_run_config
 
     run, _ = _old_run(tmp_path)
     assert read_run_config(run)["version"] == 1

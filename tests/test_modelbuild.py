@@ -22,6 +22,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from tdof20.annotate import modelbuild as mb
+from tdof20.annotate.symmetry import canonical_frame, symmetry_kind
 from tdof20.errors import TdofError
 from tdof20.o3d import o3d
 from tdof20.objects import get_object
@@ -78,11 +79,11 @@ def test_a_jar_in_a_random_pose_is_continuous_about_its_true_axis():
     V, F = _mesh(JAR)
     R, t = _pose(1)
     Vi = V @ R.T + t
-    T, sym = mb.canonical_frame(Vi, F)                       # no table normal: principal axes tried
-    assert sym == CONT and mb.symmetry_kind(sym) == "continuous"
+    T, sym = canonical_frame(Vi, F)                       # no table normal: principal axes tried
+    assert sym == CONT and symmetry_kind(sym) == "continuous"
     assert min(_deg(T[2, :3], R[:, 2]), _deg(T[2, :3], -R[:, 2])) < 1.0
     # with the table normal: z along it, the origin on the axis at mid-height, the catalog's extents
-    T, sym = mb.canonical_frame(Vi, F, up=R[:, 2])
+    T, sym = canonical_frame(Vi, F, up=R[:, 2])
     assert sym == CONT and _deg(T[2, :3], R[:, 2]) < 1.0
     Vm = Vi @ T[:3, :3].T + T[:3, 3]
     lo, hi = Vm.min(axis=0), Vm.max(axis=0)
@@ -101,15 +102,15 @@ def test_a_jar_with_a_rough_cavity_floor_is_still_continuous():
     assert floor.sum() > 60
     V[floor, 2] += np.random.default_rng(0).uniform(-2.5, 2.5, floor.sum())
     R, t = _pose(5)
-    _, sym = mb.canonical_frame(V @ R.T + t, F, up=R[:, 2])
+    _, sym = canonical_frame(V @ R.T + t, F, up=R[:, 2])
     assert sym == CONT
 
 
 def test_a_mug_with_its_handle_has_no_symmetry_and_x_points_to_the_handle():
     V, F = _mesh(MUG)
     R, t = _pose(2)
-    T, sym = mb.canonical_frame(V @ R.T + t, F, up=R[:, 2])
-    assert sym == {} and mb.symmetry_kind(sym) is None
+    T, sym = canonical_frame(V @ R.T + t, F, up=R[:, 2])
+    assert sym == {} and symmetry_kind(sym) is None
     assert _deg(T[2, :3], R[:, 2]) < 1e-6                    # an upright object without symmetry: z = up
     assert _deg(T[0, :3], R @ [-1.0, 0.0, 0.0]) < 5.0        # the catalog's mug has its handle at -x
 
@@ -117,8 +118,8 @@ def test_a_mug_with_its_handle_has_no_symmetry_and_x_points_to_the_handle():
 def test_a_cube_glass_is_four_fold_in_bop_form():
     V, F = _mesh(HEX_GLASS)
     R, t = _pose(3)
-    T, sym = mb.canonical_frame(V @ R.T + t, F, up=R[:, 2])
-    assert mb.symmetry_kind(sym) == N_FOLD and set(sym) == {"symmetries_discrete"}
+    T, sym = canonical_frame(V @ R.T + t, F, up=R[:, 2])
+    assert symmetry_kind(sym) == N_FOLD and set(sym) == {"symmetries_discrete"}
     turns = np.asarray(sym["symmetries_discrete"], float)
     assert turns.shape == (N_FOLD - 1, 16)
     want = np.asarray(get_object(HEX_GLASS).models_info()["symmetries_discrete"], float)
@@ -169,7 +170,7 @@ def test_a_model_built_from_a_visible_surface_with_normals_matches_the_truth(sho
     c = shot_glass_cluster
     m = mb.build_model_from_cluster(c["P"], c["plane"], FAST, normals=c["N"])
     assert m.watertight and trimesh.Trimesh(m.vertices, m.faces, process=False).is_watertight
-    assert mb.symmetry_kind(m.symmetries) == "continuous"
+    assert symmetry_kind(m.symmetries) == "continuous"
     size = [m.info[k] for k in ("size_x", "size_y", "size_z")]
     assert np.allclose(size, get_object(SHOT_GLASS).size, atol=0.6)   # 83 x 83 x 63.2 mm
     assert m.info["cluster_to_model_median_mm"] < 0.3 and m.info["closed_bottom"]
@@ -211,7 +212,7 @@ def test_a_vase_whose_belly_no_camera_sees_is_built_hollow():
     assert np.percentile(d_truth, 95) < 1.5                 # the inside of the belly is there
     vol = trimesh.Trimesh(V_true, m.faces, process=False).volume
     assert vol == pytest.approx(trimesh.Trimesh(V, F, process=False).volume, rel=0.15)
-    assert m.watertight and mb.symmetry_kind(m.symmetries) == "continuous"
+    assert m.watertight and symmetry_kind(m.symmetries) == "continuous"
     assert 3.0 < m.info["wall_mm"] < 4.0 and m.info["inner_wall_points"] > 5000   # 3.5 mm glass
 
 
@@ -284,7 +285,7 @@ def test_write_models_writes_a_bop_models_folder(written):
     loaded = model_keypoints(d)
     for o in models:
         assert np.allclose(kps[str(o)], loaded[o], atol=1e-5)
-    assert mb.symmetry_kind(info["12"]) == "continuous" and mb.symmetry_kind(info["7"]) is None
+    assert symmetry_kind(info["12"]) == "continuous" and symmetry_kind(info["7"]) is None
 
 
 def test_load_models_reads_back_what_write_models_wrote(written):

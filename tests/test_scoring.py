@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tdof20.scoring import metrics as M
-from tdof20.scoring import report, scoring
+from tdof20.scoring import report, scorer, scoring
 from tdof20.dataset.results import HEADER, Results, read_results, write_results_csv
 from tdof20.scoring.scoring import evaluate, score, score_command
 from tdof20.errors import TdofError
@@ -163,7 +163,7 @@ def test_fast_path_equals_straightforward(obj_id):
     Re, te, Rg, tg = _poses_near_threshold(model, rng, B)
     Ks = np.broadcast_to(K, (B, 3, 3))
     single = {"Re": Re, "te": te, "Rg": Rg, "tg": tg, "K": Ks}
-    ev = scoring._evaluate_object(model, obj_id, single, [], 0)
+    ev = scorer.evaluate_object(model, obj_id, single, [], 0)
     thr = 0.1 * model.diameter
     add = M.add_batch(Re, te, Rg, tg, model.pts)
     adds = M.adds_batch(Re, te, Rg, tg, model.pts)

@@ -22,9 +22,10 @@ import torch
 from tdof20.dataset.build import build_dataset, split_images
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
-from tdof20.methods.data import (DEPTH_MODES, HFFTransform, SceneImages, backproject, keypoint_table,
-                                 model_keypoints, scale_intrinsics)
-from tdof20.methods.predict import predict, predict_rows, recover_poses, segmentation_iou
+from tdof20.methods.data import DEPTH_MODES, SceneImages, backproject, model_keypoints, scale_intrinsics
+from tdof20.methods.hff6dof_data import HFFTransform, keypoint_table
+from tdof20.methods.hff6dof_pose import recover_poses
+from tdof20.methods.predict import predict, predict_rows, segmentation_iou
 from tdof20.methods.train import lr_factor, train
 from tdof20.sim.truth import oracle_scene
 
@@ -211,7 +212,7 @@ def test_every_baseline_trains_predicts_and_scores_through_the_same_loop(name, d
     s = score(out, dataset, split="simple")
     assert 0.0 <= s["all"]["add_s"] <= 1.0
     if name == "pvnet":
-        with pytest.raises(TdofError, match="--voting is not an option of pvnet"):
+        with pytest.raises(TdofError, match="pvnet prediction options: unknown option 'voting'"):
             predict(run, dataset, "simple", tmp_path / "v.csv", voting="3d", progress=False)
 
 
@@ -241,7 +242,7 @@ def test_stop_epoch_ends_a_call_early_and_the_run_continues_as_one(dataset, tmp_
     ``epochs`` either way): how reproduce validates each epoch's checkpoint."""
     import json
 
-    from tdof20.methods.train import parameters_digest, load_run
+    from tdof20.methods.runs import load_run, parameters_digest
 
     images = split_images(dataset, "simple", "train")[:8]
     opts = {**TRAIN, "num_workers": 0, "method": "pvnet", "method_config": {"fcdim": 32, "raw_dim": 16}}

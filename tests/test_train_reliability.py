@@ -145,7 +145,7 @@ def test_a_checkpoint_of_another_network_is_refused(data, tmp_path, capsys):
     one_line_error(code, err, str(run / "last.pt"), "holds another network than the run's config.json",
                    "fuse_stages 3 here, 2 in config.json", "weights")
     code, err = cli(capsys, "train", "hff6dof", "--dataset", data["root"], "--split", "simple", "--out", run,
-                    "--image-size", "32x32", "--batch-size", "2", "--fuse-stages", "2", "--workers", "0",
+                    "--image-size", "32x32", "--batch-size", "2", "--set", "fuse_stages=2", "--workers", "0",
                     "--device", "cpu")
     one_line_error(code, err, str(run / "last.pt"), "fuse_stages 3 here, 2 in config.json", "another --out")
     assert files(run) == before and sha(data["run"] / "last.pt") == sha(run / "last.pt")
@@ -268,7 +268,7 @@ def test_torchrun_two_processes_on_the_cpu(data, tmp_path):
     and write exactly one checkpoint, which predict reads."""
     from tdof20.methods.hff6dof import HFF6DoF
     from tdof20.methods.predict import predict
-    from tdof20.methods.train import parameters_digest, read_checkpoint
+    from tdof20.methods.runs import parameters_digest, read_checkpoint
 
     root, run = data["root"], tmp_path / "ddp"
     code, stdout, stderr = torchrun("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run,

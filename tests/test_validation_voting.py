@@ -19,8 +19,10 @@ from tdof20.dataset.validation import part_images, split_with_val, val_targets, 
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
-from tdof20.methods.data import HFFTransform, SceneImages, keypoint_table, model_keypoints
-from tdof20.methods.predict import predict_rows, recover_poses
+from tdof20.methods.data import SceneImages, model_keypoints
+from tdof20.methods.hff6dof_data import HFFTransform, keypoint_table
+from tdof20.methods.hff6dof_pose import recover_poses
+from tdof20.methods.predict import predict_rows
 from tdof20.methods.train import train
 from tdof20.sim.truth import oracle_scene
 

@@ -11,23 +11,19 @@ The stages' rooms: :mod:`~tdof20.annotate.registration` with :mod:`~tdof20.annot
 (qa). :mod:`~tdof20.annotate.stages` describes each stage once (a record: name, needs, run,
 inputs, outputs); :mod:`~tdof20.annotate.pipeline` walks them in order, resumably, with the
 scene folder's state and lock (:mod:`~tdof20.annotate.state`) and the options
-(:mod:`~tdof20.annotate.config`). Names other than the registration's are imported on first use,
-so ``import tdof20.annotate`` stays light.
+(:mod:`~tdof20.annotate.config`). Names other than the registration's options and results are
+imported on first use, so ``import tdof20.annotate`` stays light (no open3d).
 """
 from __future__ import annotations
 
 import importlib
 from typing import Any
 
-from tdof20.annotate.registration import (
-    ArmRegistration,
-    FrameRegistration,
-    RegistrationConfig,
-    RegistrationResult,
-    register_session,
-)
+from tdof20.annotate.registration_config import RegistrationConfig
+from tdof20.annotate.registration_result import ArmRegistration, FrameRegistration, RegistrationResult
 
 _LAZY = {
+    "register_session": "registration",
     # the pipeline: options, stages, orchestrator
     "AnnotateConfig": "config", "PlaceConfig": "config", "QAConfig": "config",
     "load_annotate_config": "config", "annotate_config_from_dict": "config",
@@ -36,7 +32,7 @@ _LAZY = {
     # the stages
     "ReconstructionConfig": "reconstruct", "Reconstruction": "reconstruct",
     "ModelFitConfig": "models", "ModelFit": "models", "fit_model": "models",
-    "ModelBuildConfig": "modelbuild", "BuiltModel": "modelbuild", "build_model_from_cluster": "modelbuild",
+    "ModelBuildConfig": "modelbuild_config", "BuiltModel": "modelbuild", "build_model_from_cluster": "modelbuild",
     "write_models": "modelbuild", "load_models": "modelbuild",
     "LabelConfig": "label", "label_scene": "label",
     "write_qa": "qa",
@@ -44,8 +40,7 @@ _LAZY = {
     "evaluate_against_truth": "evaluate", "truth_T_ref_frame": "evaluate", "truth_label_inputs": "evaluate",
 }
 
-__all__ = ["ArmRegistration", "FrameRegistration", "RegistrationConfig", "RegistrationResult",
-           "register_session", *_LAZY]
+__all__ = ["ArmRegistration", "FrameRegistration", "RegistrationConfig", "RegistrationResult", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

@@ -1,9 +1,9 @@
 """The options of ``tdof20 annotate``: one dataclass per stage and :class:`AnnotateConfig` over them.
 
-``[register]`` :class:`~tdof20.annotate.registration.RegistrationConfig`, ``[reconstruct]``
+``[register]`` :class:`~tdof20.annotate.registration_config.RegistrationConfig`, ``[reconstruct]``
 :class:`~tdof20.annotate.reconstruct.ReconstructionConfig`, ``[fit]``
 :class:`~tdof20.annotate.models.ModelFitConfig`, ``[build]``
-:class:`~tdof20.annotate.modelbuild.ModelBuildConfig`, ``[place]`` :class:`PlaceConfig` (the model
+:class:`~tdof20.annotate.modelbuild_config.ModelBuildConfig`, ``[place]`` :class:`PlaceConfig` (the model
 and place stages), ``[label]`` :class:`~tdof20.annotate.label.LabelConfig`, ``[qa]``
 :class:`QAConfig`; top-level ``fuse_max_frames``, ``fuse_crop``, ``fuse_max_height_mm`` (the
 reconstruct stage's choice of frames and crop). :func:`load_annotate_config` reads a TOML file
@@ -21,9 +21,9 @@ from typing import Any
 
 from tdof20.annotate.label import LabelConfig
 from tdof20.annotate.models import ModelFitConfig
-from tdof20.annotate.modelbuild import ModelBuildConfig
+from tdof20.annotate.modelbuild_config import ModelBuildConfig
 from tdof20.annotate.reconstruct import ReconstructionConfig
-from tdof20.annotate.registration import RegistrationConfig
+from tdof20.annotate.registration_config import RegistrationConfig
 from tdof20.config import config_from_data, load_config_file
 from tdof20.errors import TdofError
 

@@ -23,15 +23,13 @@ open3d's normals took ~75 ms, and an ICP iteration ~0.2 ms where the k-d tree qu
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tdof20.annotate.icp import information_matrix, prior_step, prior_weights
+from tdof20.annotate.registration_config import RegistrationConfig
 from tdof20.geometry.camera import PinholeCamera
 
-if TYPE_CHECKING:   # the options' type only
-    from tdof20.annotate.registration import RegistrationConfig
 
 __all__ = ["DepthMap", "MapPyramid", "block_depth", "icp_maps", "icp_projective", "source_points", "map_stride", "smallest_eigenvectors", "strided_camera"]
 
@@ -116,7 +114,7 @@ class DepthMap:
     camera of the strided image; ``source``: (m,3) float32 points (a seeded subsample of at most
     ``max_source`` of the volume's points); ``n_points``: how many points the volume holds."""
 
-    def __init__(self, zb: np.ndarray, crop, cfg: "RegistrationConfig", window: int, max_source: int,
+    def __init__(self, zb: np.ndarray, crop, cfg: RegistrationConfig, window: int, max_source: int,
                  normals_from: "DepthMap | None" = None):
         """``zb``: the frame's depth (mm) block-averaged to this map's stride (:func:`block_depth`);
         ``crop``: the turntable volume (:class:`~tdof20.annotate.turntable.VolumeCrop`) on the
@@ -247,7 +245,7 @@ def _normal_map(V: np.ndarray, keep: np.ndarray, window: int, max_variation: flo
     return out, has
 
 
-def icp_projective(src: DepthMap, tgt: DepthMap, init: np.ndarray, centre: np.ndarray, cfg: "RegistrationConfig",
+def icp_projective(src: DepthMap, tgt: DepthMap, init: np.ndarray, centre: np.ndarray, cfg: RegistrationConfig,
                    dist: float, iterations: int, information: bool = True, prior_T: np.ndarray | None = None,
                    tol_scale: float = 1.0, evaluate: bool = True):
     """Point-to-plane ICP (src -> tgt, both maps of one camera at one stride) regularised towards
@@ -338,7 +336,7 @@ class MapPyramid:
         return self.n_fine
 
 
-def icp_maps(src: MapPyramid, tgt: MapPyramid, prior: np.ndarray, centre: np.ndarray, cfg: "RegistrationConfig",
+def icp_maps(src: MapPyramid, tgt: MapPyramid, prior: np.ndarray, centre: np.ndarray, cfg: RegistrationConfig,
              levels: list[int], information: bool = True):
     """:func:`icp_projective` over ``levels`` (coarse to fine): the correspondence distance
     ``icp_dist_factor`` x the level's scale, its ``icp_iterations``; fitness, RMSE and the
@@ -361,7 +359,7 @@ def icp_maps(src: MapPyramid, tgt: MapPyramid, prior: np.ndarray, centre: np.nda
 COARSE_TOL = 10.0   # a coarse level stops at this multiple of the convergence tolerances
 
 
-def source_points(cfg: "RegistrationConfig", level: int) -> int:
+def source_points(cfg: RegistrationConfig, level: int) -> int:
     """How many points of a map at ``voxel_sizes_mm[level]`` are the ICP's source: ``max_source_points``
     at the finest scale, fewer at the coarser ones (by the ratio of the areas; 1,000 at least), which
     only bring a pose into the finest scale's reach."""

@@ -46,17 +46,18 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from tdof20.annotate.pngread import mask_rows, mask_rows_iou
+from tdof20.annotate.registration_result import RegistrationResult
 from tdof20.errors import TdofError
 from tdof20.formats import SCENE_CAMERA, SCENE_GT, BopScene, RawSession, dumps_json, read_json, read_scene
-from tdof20.formats.bop import model_path, read_model_mesh
+from tdof20.formats.bop_models import model_path, read_model_mesh, read_models_info
+from tdof20.geometry.sampling import sample_mesh_surface
 from tdof20.geometry.transforms import invert
-
-if TYPE_CHECKING:   # the type only: the registration imports open3d
-    from tdof20.annotate.registration import RegistrationResult
+from tdof20.objects import get_object
 
 __all__ = ["evaluate_scene", "evaluate_command", "evaluate_against_truth", "model_centre", "truth_T_ref_frame",
            "truth_label_inputs",
@@ -119,8 +120,6 @@ class _Model:
     once in its model frame."""
 
     def __init__(self, V: np.ndarray, F: np.ndarray, n_points: int, seed: int, distance: str):
-        from tdof20.geometry.sampling import sample_mesh_surface
-
         self.V, self.F = V, F
         self.centre = model_centre(V)
         self.samples = sample_mesh_surface(V, F, n_points, seed=seed)
@@ -197,8 +196,6 @@ def _motion_errors(TL: np.ndarray, TG: np.ndarray, centre: np.ndarray, i: np.nda
 
 def _ious(lab: BopScene, tru: BopScene, jobs: list[tuple[int, int, int]], workers: int) -> np.ndarray:
     """(n, 2) full and visible IoU for jobs [(im_id, label gt_id, truth gt_id)]."""
-    from tdof20.annotate.pngread import mask_rows, mask_rows_iou
-
     def one(job):
         # only the box around a mask's non-zero pixels is decoded and compared
         im, lg, tg = job
@@ -302,8 +299,6 @@ def evaluate_scene(scene_dir: str | Path, truth_dir: str | Path, max_frames: int
 
     def diameter(obj_id: int) -> float:
         if obj_id not in infos:
-            from tdof20.formats.bop import read_models_info
-
             info = read_models_info(tru.path / "models")
             infos.update({int(k): float(v["diameter"]) for k, v in info.items()})
         return infos[obj_id]
@@ -442,8 +437,6 @@ def truth_label_inputs(session_dir: str | Path) -> tuple[dict, list, dict]:
     registration and placement would give): ``T_ref_frames`` {(arm, step): (4,4)}, the
     placements [(obj_id, T_ref_model)] (the truth's poses in image 0, the reference camera) and
     the catalog's models {obj_id: (vertices, faces)}."""
-    from tdof20.objects import get_object
-
     T = truth_T_ref_frame(session_dir)
     frames = {(a, k): T[a, k] for a in range(T.shape[0]) for k in range(T.shape[1])}
     truth = read_scene(Path(session_dir) / "truth")
@@ -457,7 +450,7 @@ def truth_label_inputs(session_dir: str | Path) -> tuple[dict, list, dict]:
     return frames, placements, models
 
 
-def evaluate_against_truth(result: "RegistrationResult", session_dir: str | Path, max_pairs: int = 20000,
+def evaluate_against_truth(result: RegistrationResult, session_dir: str | Path, max_pairs: int = 20000,
                            seed: int = 0) -> dict:
     """Errors of the registration against the simulator's truth (flagged frames left out).
 

@@ -16,17 +16,15 @@ Options: :class:`~tdof20.annotate.registration.RegistrationConfig`; mm throughou
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tdof20.annotate.registration_config import RegistrationConfig
 from tdof20.annotate.turntable import T_diff, height_radius, turntable_prior
 from tdof20.errors import TdofError
 from tdof20.geometry.transforms import invert
 from tdof20.o3d import o3d
 
-if TYPE_CHECKING:   # the options' type only: registration imports this module
-    from tdof20.annotate.registration import RegistrationConfig
 
 __all__ = ["REG", "Pyramid", "edge_pairs", "icp", "icp_prior", "point_cloud", "pose_graph_pass", "voxel_cells"]
 

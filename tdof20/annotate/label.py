@@ -17,12 +17,13 @@ Per frame ``(arm, step)`` of the transparent phase, ``im_id = arm * steps + step
 
 The frames run in chunks on worker processes (or a Ray cluster, see
 :mod:`tdof20.annotate.executors`); each worker opens the session and builds its ray caster once.
-The three JSON files are rewritten atomically as the chunks come back (merged with the entries
-already there; at most every 2 s, and at the end — also of an interrupted run), so a killed run
-loses at most the chunks of its last 2 s and those in flight, and a rerun redoes only the
-frames whose files or JSON entries are missing or whose poses changed. A frame with a missing or
-corrupt image is skipped and reported, never labelled; a frame the caller skips (flagged by
-registration) gets no labels, and labels left from an earlier run for it are removed.
+The workers write the images; the scene's :class:`~tdof20.formats.BopSceneWriter` rewrites the
+three JSON files atomically as the chunks come back (merged with the entries already there; at
+most every 2 s, and at the end — also of an interrupted run), so a killed run loses at most the
+chunks of its last 2 s and those in flight, and a rerun redoes only the frames whose files or
+JSON entries are missing or whose poses changed. A frame with a missing or corrupt image is
+skipped and reported, never labelled; a frame the caller skips (flagged by registration) gets no
+labels, and labels left from an earlier run for it are removed.
 
 The stage writes neither ``models/`` nor ``scene_info.json`` (the pipeline's other stages do).
 One writer per scene folder: two runs on the same folder at once are not supported. With worker
@@ -32,7 +33,6 @@ processes (the default), a script calling :func:`label_scene` needs the usual
 
 from __future__ import annotations
 
-import json
 import os
 import time
 import uuid
@@ -44,16 +44,18 @@ import cv2
 import numpy as np
 
 from tdof20.annotate.executors import EXECUTORS, process_cache, resolve_workers, run_chunks
+from tdof20.annotate.labels import ModelRaycaster, far_to_near, mask_iou
 from tdof20.annotate.pngread import decode_png_fast
 from tdof20.config import check_ranges
 from tdof20.errors import TdofError
-from tdof20.formats import (EMPTY_BBOX, SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO, RawSession, atomic_write_bytes,
-                            dumps_json, gt_info_from_masks, pose_to_bop, read_json, read_scene,
-                            sha256_bytes, write_png)
+from tdof20.formats import (EMPTY_BBOX, BopSceneWriter, RawSession, atomic_write_bytes, gt_info_from_masks,
+                            pose_to_bop, sha256_bytes, write_png)
+from tdof20.formats.bop import drop_stale_masks
 from tdof20.formats.io import png_header
 from tdof20.formats.session import frame_size_problem
 from tdof20.geometry import PinholeCamera
 from tdof20.geometry.raycast import BoxRender
+from tdof20.geometry.sampling import sample_mesh_surface
 
 METHODS = ("raycast", "far_to_near")
 IMAGE_DIRS = ("rgb", "depth", "depth_opaque", "depth_restored")
@@ -141,71 +143,6 @@ def auto_samples(camera: PinholeCamera) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
-# the three JSON files, kept in memory and rewritten atomically
-# ---------------------------------------------------------------------------------------------
-def _json_line(im_id: int, entry: Any) -> str:
-    """One line of :func:`tdof20.formats.dumps_bop_json` (the BOP toolkit layout)."""
-    return f"  {json.dumps(str(int(im_id)))}: {dumps_json(entry, indent=None)}"
-
-
-class _SceneJson:
-    """scene_camera / scene_gt / scene_gt_info of a scene folder: read (and validated) once, then
-    updated in memory and written back whole and atomically by :meth:`flush` — each entry's line
-    serialised once, so a flush costs a join and a write, not a re-parse of the scene."""
-
-    NAMES = (SCENE_CAMERA, SCENE_GT, SCENE_GT_INFO)
-
-    def __init__(self, out: Path):
-        self.out = out
-        self.data: dict[str, dict[int, Any]] = {n: {} for n in self.NAMES}
-        self.lines: dict[str, dict[int, str]] = {n: {} for n in self.NAMES}
-        self.dirty = False
-        if (out / SCENE_CAMERA).exists():
-            read_scene(out, require_gt=False)  # refuse to merge into a malformed scene
-        for n in self.NAMES:
-            p = out / n
-            if not p.exists():
-                continue
-            raw = read_json(p)
-            if not isinstance(raw, dict):
-                raise TdofError(f"must hold a JSON object keyed by image id, got {type(raw).__name__}", p)
-            for k, v in raw.items():
-                try:
-                    im_id = int(k)
-                except ValueError:
-                    raise TdofError(f"key {k!r} is not an integer id", p) from None
-                self.data[n][im_id] = v
-                self.lines[n][im_id] = _json_line(im_id, v)
-
-    def has_any(self, im_id: int) -> bool:
-        return any(im_id in self.data[n] for n in self.NAMES)
-
-    def has(self, im_id: int) -> bool:
-        return all(im_id in self.data[n] for n in self.NAMES)
-
-    def put(self, im_id: int, camera: dict, gt: list, gt_info: list) -> None:
-        for n, v in zip(self.NAMES, (camera, gt, gt_info)):
-            self.data[n][im_id] = v
-            self.lines[n][im_id] = _json_line(im_id, v)
-        self.dirty = True
-
-    def drop(self, im_id: int) -> None:
-        for n in self.NAMES:
-            if self.data[n].pop(im_id, None) is not None:
-                self.lines[n].pop(im_id, None)
-                self.dirty = True
-
-    def flush(self) -> None:
-        if not self.dirty:
-            return
-        for n in (SCENE_GT_INFO, SCENE_GT, SCENE_CAMERA):
-            lines = [self.lines[n][k] for k in sorted(self.lines[n])]
-            text = "{\n" + ",\n".join(lines) + ("\n" if lines else "") + "}\n"
-            atomic_write_bytes(self.out / n, text.encode(), fsync=True)
-        self.dirty = False
-
-
-# ---------------------------------------------------------------------------------------------
 # the work of one frame (runs in a worker)
 # ---------------------------------------------------------------------------------------------
 @dataclass
@@ -232,8 +169,6 @@ class _LabelJob:
         return process_cache(("label", self.key), self._build)
 
     def _build(self) -> _WorkerState:
-        from tdof20.annotate.labels import ModelRaycaster
-
         session = RawSession.open(self.session_dir)
         cam = session.info.camera
         return _WorkerState(session, cam, ModelRaycaster(self.models, cam))
@@ -243,8 +178,6 @@ class _LabelJob:
             if self.samples is not None:
                 st.samples = {int(k): np.asarray(v, np.float64) for k, v in self.samples.items()}
             else:
-                from tdof20.geometry.sampling import sample_mesh_surface
-
                 n = self.cfg.samples or auto_samples(st.camera)
                 st.samples = {o: sample_mesh_surface(v, f, n, seed=0) for o, (v, f) in self.models.items()}
         return st.samples
@@ -252,8 +185,6 @@ class _LabelJob:
     def render(self, st: _WorkerState, method: str, poses: list):
         if method == "raycast":
             return st.raycaster.render(poses)
-        from tdof20.annotate.labels import far_to_near
-
         return far_to_near(self.samples_of(st), poses, st.camera, splat_px=self.cfg.splat_px)
 
     def __call__(self, chunk: list) -> list[dict]:
@@ -364,11 +295,7 @@ class _LabelJob:
                 img = np.zeros((h, w), np.uint8)
                 img[v0:v1, u0:u1] = m.view(np.uint8) * np.uint8(255)
                 write_png(out / sub / f"{im_id:06d}_{g:06d}.png", img, c)
-        for sub in MASK_DIRS:  # a frame written before with more instances: drop the stale masks
-            g = len(poses)
-            while (p := out / sub / f"{im_id:06d}_{g:06d}.png").exists():
-                p.unlink()
-                g += 1
+        drop_stale_masks(out, im_id, len(poses))  # a frame written before with more instances
         t4 = time.perf_counter()
         res.update(status="labelled", camera=camera, gt=gt, gt_info=gt_info, compare=cmp,
                    opaque=opaque_bytes is not None, gate=gate,
@@ -422,8 +349,6 @@ def _gt_info(full: np.ndarray, vis: np.ndarray, depth: np.ndarray, offset: tuple
 
 def _compare(exact, painter, n: int) -> list[dict]:
     """Per instance seen by either method: IoU of the visible and of the full masks."""
-    from tdof20.annotate.labels import mask_iou
-
     out = []
     for i in range(n):
         ve, vp = exact.visible == i, painter.visible == i
@@ -488,17 +413,17 @@ def _listing(d: Path) -> set[str]:
         return set()
 
 
-def _same_labels(js: _SceneJson, im_id: int, cam: dict, gt: list[tuple[int, np.ndarray]]) -> bool:
+def _same_labels(writer: BopSceneWriter, im_id: int, cam: dict, gt: list[tuple[int, np.ndarray]]) -> bool:
     """Whether the stored entries of a frame are the ones these inputs give (so it is not redone)."""
     try:
-        c = js.data[SCENE_CAMERA][im_id]
+        c = writer.camera[im_id]
         if not np.allclose(c["cam_K"], cam["cam_K"], rtol=0, atol=1e-9) or c["depth_scale"] != cam["depth_scale"]:
             return False
         if not (np.allclose(c["cam_R_w2c"], cam["cam_R_w2c"], rtol=0, atol=_POSE_TOL_R)
                 and np.allclose(c["cam_t_w2c"], cam["cam_t_w2c"], rtol=0, atol=_POSE_TOL_T)):
             return False
-        stored = js.data[SCENE_GT][im_id]
-        if len(stored) != len(gt) or len(js.data[SCENE_GT_INFO][im_id]) != len(gt):
+        stored = writer.gt[im_id]
+        if len(stored) != len(gt) or len(writer.gt_info[im_id]) != len(gt):
             return False
         for e, (obj_id, T) in zip(stored, gt):
             if int(e["obj_id"]) != int(obj_id):
@@ -601,7 +526,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     skips = _skip_reasons(skip)
 
     # --- plan: what is done, what to do, what to skip ------------------------------------------
-    js = _SceneJson(out)
+    writer = BopSceneWriter(out)
     listing = {d: _listing(out / d) for d in IMAGE_DIRS + MASK_DIRS}
     K_flat = [float(x) for x in cam.K.reshape(-1)]
     skipped, done, todo = [], [], []
@@ -624,10 +549,10 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
             files_ok = (all(name in listing[d] for d in ("rgb", "depth", "depth_restored"))
                         and (not has_opaque or name in listing["depth_opaque"])
                         and all(f"{im_id:06d}_{g:06d}.png" in listing[d] for d in MASK_DIRS for g in range(n)))
-            if reuse and files_ok and js.has(im_id):
+            if reuse and files_ok and writer.has(im_id):
                 camd = {"cam_K": K_flat, "depth_scale": float(cam.depth_scale),
                         "cam_R_w2c": T_frame_ref[:3, :3].reshape(-1), "cam_t_w2c": T_frame_ref[:3, 3]}
-                if _same_labels(js, im_id, camd, [(o, T_frame_ref @ Tm) for o, Tm in places]):
+                if _same_labels(writer, im_id, camd, [(o, T_frame_ref @ Tm) for o, Tm in places]):
                     done.append(im_id)
                     continue
             compare = cfg.compare_every > 0 and im_id % cfg.compare_every == 0
@@ -636,13 +561,13 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     for s in skipped:  # labels of an earlier run for a frame that must not be labelled now
         im_id = s["im_id"]
         name = f"{im_id:06d}.png"
-        if js.has_any(im_id) or any(name in listing[d] for d in IMAGE_DIRS):
-            js.drop(im_id)
+        if writer.has_any(im_id) or any(name in listing[d] for d in IMAGE_DIRS):
+            writer.drop(im_id)
             _remove_frame_files(out, im_id, listing)
             removed.append(im_id)
     for d in IMAGE_DIRS + MASK_DIRS:
         (out / d).mkdir(parents=True, exist_ok=True)
-    js.flush()
+    writer.flush()
 
     # --- run ------------------------------------------------------------------------------------
     job = _LabelJob(str(session.path), str(out), tuple(places), model_map, samples, cfg)
@@ -667,12 +592,12 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                         gate_unjudged += 1
                 if r["status"] != "labelled":
                     skipped.append({k: r[k] for k in ("im_id", "arm", "step", "reason")})
-                    if js.has_any(r["im_id"]):  # an earlier run's labels of a frame now unreadable
-                        js.drop(r["im_id"])
+                    if writer.has_any(r["im_id"]):  # an earlier run's labels of a frame now unreadable
+                        writer.drop(r["im_id"])
                         _remove_frame_files(out, r["im_id"], None)
                         removed.append(r["im_id"])
                     continue
-                js.put(r["im_id"], r["camera"], r["gt"], r["gt_info"])
+                writer.put(r["im_id"], r["camera"], r["gt"], r["gt_info"])
                 labelled.append(r["im_id"])
                 if not r["opaque"]:
                     no_opaque.append(r["im_id"])
@@ -681,12 +606,12 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                 for k, v in r["times"].items():
                     times[k] = times.get(k, 0.0) + v
             if time.perf_counter() - t_flush >= _FLUSH_S:
-                js.flush()
+                writer.flush()
                 t_flush = time.perf_counter()
             if t_first is None:
                 t_first, n_first = time.perf_counter(), len(labelled)
     finally:
-        js.flush()
+        writer.flush()
     t_end, cpu_main = time.perf_counter(), time.process_time() - cpu_run
     if cfg.executor == "local" and min(resolve_workers(cfg.workers), len(chunks)) <= 1:
         cpu_main -= times.get("cpu", 0.0)  # the frames ran in this process: count their CPU once

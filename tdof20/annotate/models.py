@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tdof20.config import check_ranges
-from tdof20.geometry import transform_points
+from tdof20.geometry import rotation_matrix, transform_points
 from tdof20.o3d import o3d
 
 
@@ -77,8 +77,6 @@ def fit_model(model_points: np.ndarray, cluster: np.ndarray, cfg: ModelFitConfig
     rig: the model's z goes along ``up`` and 12 turns about it are each refined by ICP (a handle or a
     spout decides between them; FPFH matching alone confuses the turns of a nearly symmetric
     body). Without it, FPFH + RANSAC global registration gives the start."""
-    from tdof20.geometry import rotation_matrix
-
     if init is not None:
         return _icp(model_points, cluster, np.asarray(init, float), cfg)
     if up is not None:

@@ -32,10 +32,13 @@ import numpy as np
 from tdof20.annotate.config import AnnotateConfig
 from tdof20.annotate.executors import run_chunks
 from tdof20.annotate.fusion import cluster_shape, point_cloud
+from tdof20.annotate.modelbuild import sample_points
 from tdof20.annotate.models import fit_model
+from tdof20.dataset.models import load_models
 from tdof20.errors import TdofError
 from tdof20.formats import atomic_write_bytes, read_json, write_json
-from tdof20.formats.bop import read_models_info, write_models_info
+from tdof20.formats.bop_models import read_models_info, write_models_info
+from tdof20.geometry import rotation_matrix
 
 __all__ = ["T_arr", "T_list", "copy_file", "copy_models", "load_meshes", "match_models", "model_samples",
            "place_models", "upright"]
@@ -45,16 +48,12 @@ __all__ = ["T_arr", "T_list", "copy_file", "copy_models", "load_meshes", "match_
 # models and poses
 # ---------------------------------------------------------------------------------------------
 def load_meshes(models_dir: Path, obj_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """{obj_id: (V, F)} of a models folder, checked by :func:`~tdof20.annotate.modelbuild.load_models`."""
-    from tdof20.dataset.models import load_models
-
+    """{obj_id: (V, F)} of a models folder, checked by :func:`~tdof20.dataset.models.load_models`."""
     return {o: (V, F) for o, (V, F, _) in load_models(models_dir, obj_ids).items()}
 
 
 def model_samples(models: dict, n: int) -> dict[int, np.ndarray]:
     """{obj_id: (n,3) surface samples} of {obj_id: (V, F)} (seeded: the same on every run)."""
-    from tdof20.annotate.modelbuild import sample_points
-
     return {o: sample_points(v[0], v[1], n, seed=0) for o, v in models.items()}
 
 
@@ -92,8 +91,6 @@ def _thin(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit vector a to unit vector b."""
-    from tdof20.geometry import rotation_matrix
-
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
     axis = np.cross(a, b)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from isal import isal_zlib
 
-from tdof20.formats import decode_png
+from tdof20.formats import decode_png, read_bytes
 from tdof20.formats.io import PNG_SIGNATURE
 
 __all__ = ["decode_png_fast", "mask_rows", "mask_rows_iou", "read_png_fast"]
@@ -81,8 +81,6 @@ def decode_png_fast(data: bytes, path: str | Path = "<bytes>", kind: str = "any"
 
 def read_png_fast(path: str | Path, kind: str = "any") -> np.ndarray:
     """:func:`tdof20.formats.read_png` with :func:`decode_png_fast`."""
-    from tdof20.formats import read_bytes
-
     return decode_png_fast(read_bytes(path), Path(path), kind)
 
 
@@ -91,8 +89,6 @@ def mask_rows(path: str | Path) -> tuple[int, int, np.ndarray, tuple[int, int]]:
     non-zero pixel, its top-left pixel is (v0, u0) — what an IoU needs, without decoding the
     empty rows and columns around an object. Any PNG the fast path does not take is read whole
     (:func:`tdof20.formats.read_png`, its errors)."""
-    from tdof20.formats import read_bytes
-
     data = read_bytes(path)
     got = _filtered_rows(data, "mask")
     if got is None:

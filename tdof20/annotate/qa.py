@@ -33,10 +33,14 @@ from typing import Any, Iterable
 import cv2
 import numpy as np
 
+from tdof20.annotate.registration_result import RegistrationResult
 from tdof20.errors import TdofError
-from tdof20.formats import SCENE_CAMERA, BopScene, atomic_write_bytes, read_json, read_png, read_scene, write_json, write_png
+from tdof20.formats import (SCENE_CAMERA, BopScene, RawSession, atomic_write_bytes, read_json, read_png, read_scene,
+                            write_json, write_png)
+from tdof20.formats.bop_models import model_path, read_model_mesh
+from tdof20.geometry.sampling import sample_mesh_surface
 from tdof20.progress import progress as _progress
-from tdof20.viz import contact_sheet, put_label
+from tdof20.viz import contact_sheet, object_colour, put_label
 
 __all__ = ["write_qa", "draw_overlay", "plot_registration", "normalise_flagged", "spread_sample"]
 
@@ -52,8 +56,6 @@ _PLOTS = (("residual_deg", "residual (deg)", "max_residual_deg"),
 # ---------------------------------------------------------------------------------------------
 def _colour(obj_id: int) -> np.ndarray:
     """A bright colour (3,) uint8 fixed per object id (:func:`tdof20.viz.object_colour`)."""
-    from tdof20.viz import object_colour
-
     return object_colour(obj_id)
 
 
@@ -225,8 +227,6 @@ def _open_scene(scene_dir: str | Path) -> BopScene:
 def _load_registration(registration):
     if registration is None:
         return None
-    from tdof20.annotate.registration import RegistrationResult
-
     if isinstance(registration, RegistrationResult):
         return registration
     return RegistrationResult.load(registration)
@@ -240,9 +240,6 @@ class _Points:
 
     def __call__(self, obj_id: int) -> np.ndarray | None:
         if obj_id not in self.cache:
-            from tdof20.formats.bop import model_path, read_model_mesh
-            from tdof20.geometry.sampling import sample_mesh_surface
-
             path = model_path(self.dir, obj_id)
             pts = None
             try:
@@ -264,8 +261,6 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
     frames join ``flagged``); ``flagged``: [(arm, step, reason) | (im_id, reason) | im_id];
     ``evaluation``: the dict of :func:`tdof20.annotate.evaluate.evaluate_scene`; ``session_dir``:
     where to find colour images of frames the scene lacks (default: scene_info's source_session)."""
-    from tdof20.formats import RawSession
-
     scene = _open_scene(scene_dir)
     out = Path(out_dir) if out_dir is not None else scene.path / "qa"
     info = read_json(scene.path / "scene_info.json") if (scene.path / "scene_info.json").exists() else {}

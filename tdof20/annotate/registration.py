@@ -15,10 +15,12 @@ Frames and conventions (mm, ``T_a_b`` maps points from frame b to frame a):
 * With the simulator's truth (``T_cam_table`` of every frame, table at angle 0),
   ``T_ref_frame(a,k) = T_cam00_table @ inv(T_cam_ak_table)``.
 
-Stages, per arm position (:func:`register_session`). This module holds the options, the results
-and the per-arm and session passes; the turntable's model and what the depth says about it are in
-:mod:`~tdof20.annotate.turntable`, the clouds, ICP and the pose graph in :mod:`~tdof20.annotate.icp`,
-the evaluation against the simulator's truth in :mod:`~tdof20.annotate.evaluate`.
+Stages, per arm position (:func:`register_session`). This module holds the per-arm and session
+passes; the options are in :mod:`~tdof20.annotate.registration_config`, the results in
+:mod:`~tdof20.annotate.registration_result`, the turntable's model and what the depth says about
+it in :mod:`~tdof20.annotate.turntable`, the clouds, ICP and the pose graph in
+:mod:`~tdof20.annotate.icp`, the evaluation against the simulator's truth in
+:mod:`~tdof20.annotate.evaluate`.
 
 1. table plane by seeded RANSAC on the centre of a few frames: of the planes with a normal near the
    robot's vertical (the prior ``R_base_cam^T e_z``), refined by least squares, the highest with
@@ -76,7 +78,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -84,298 +85,21 @@ import numpy as np
 
 from tdof20.annotate.depthmaps import (DepthMap, MapPyramid, block_depth, icp_maps, map_stride, source_points,
                                       strided_camera)
+from tdof20.annotate.executors import resolve_workers, run_chunks
 from tdof20.annotate.icp import Pyramid, edge_pairs, icp, icp_prior, point_cloud, pose_graph_pass
+from tdof20.annotate.registration_config import RegistrationConfig
+from tdof20.annotate.registration_result import ArmRegistration, FrameRegistration, RegistrationResult
 from tdof20.annotate.turntable import (T_diff, VolumeCrop, check_turntable, disk_radius, fit_axis, height_radius,
                                        load_points, rot_deg, sampled_motion, table_plane, turntable_prior)
-from tdof20.config import check_ranges
 from tdof20.errors import TdofError
-from tdof20.formats.io import read_json, write_json
 from tdof20.formats.session import RawSession, depth_units_problem
 from tdof20.geometry.transforms import invert
 from tdof20.o3d import o3d
 from tdof20.progress import progress as _progress
 
+# the options and the results have their own modules (the passes import the options from below);
+# their names stay importable from here
 __all__ = ["RegistrationConfig", "FrameRegistration", "ArmRegistration", "RegistrationResult", "register_session"]
-
-PHASE = "opaque"
-RESULT_FORMAT = "tdof20-registration"
-RESULT_VERSION = 1
-
-
-# ---------------------------------------------------------------------------------------------
-# configuration
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class RegistrationConfig:
-    """Every option of the registration; the defaults work on the simulator (640x480, 320x240)."""
-
-    phase: str = PHASE                        # the phase whose depth is registered
-    voxel_sizes_mm: tuple[float, ...] = (8.0, 4.0, 2.0)   # ICP scales, coarse to fine
-    icp_dist_factor: float = 2.5              # max correspondence distance = factor * voxel
-    icp_iterations: tuple[int, ...] = (20, 15, 15)        # per scale
-    normal_radius_mm: float = 12.0            # normals: neighbours within this radius (wide: depth
-    normal_max_nn: int = 30                   # quantisation terraces must not tilt them)
-    icp_tol_rad: float = 2e-5                 # an ICP level stops when its step turns less than this (0.001 deg)
-    icp_tol_mm: float = 2e-3                  # ... and moves less than this (measured: 16 -> 13 s CPU per 40 frames, same accuracy)
-    association: str = "auto"                 # frame-to-frame correspondences: "projective" (the target
-                                              # pixel a moved point projects to, on depth maps block-averaged to
-                                              # each scale: tdof20.annotate.depthmaps), "closest" (the nearest
-                                              # point of voxel-downsampled clouds, a k-d tree), or "auto":
-                                              # projective where a pixel is at most half the finest scale at the
-                                              # table (640x480: ~3x less CPU, as accurate), else closest (on
-                                              # coarse pixels, ~4 mm at 160x120, its correspondences are better)
-    map_max_variation: float = 0.05           # projective: a pixel whose window's smallest principal axis holds
-                                              # more than this share of the spread (an edge) has no normal
-    normal_voxel_mm: float | None = 4.0       # normals estimated on this sparser cloud (closest: a voxel grid;
-                                              # projective: the map of the scale of this size) and handed to the
-                                              # finer levels' points (nearest / the pixel holding them): 4x fewer
-                                              # points; None = each level its own
-    # data: depth range and plane
-    min_depth_mm: float = 150.0
-    max_depth_mm: float = 2000.0
-    plane_window: float = 0.6                 # central fraction of the image searched for the table
-    plane_dist_mm: float = 4.0                # RANSAC inlier distance
-    plane_prior_max_deg: float = 30.0         # table normal within this of the robot's vertical
-    plane_max_below: float = 0.3              # most of the image centre must not lie below the table
-                                              # (the rule when too little moves to tell)
-    plane_moving_below: float = 0.05          # the table top has at most this share of the moving points below it
-    plane_frames: int = 6                     # frames sampled per arm for the plane / first axis
-    # crop: the turntable volume
-    crop_below_mm: float = 10.0               # keep points down to this far below the table top
-    crop_height_mm: float = 350.0             # ... and up to this far above it
-    crop_radius_mm: float | None = None       # cylinder radius; None = the table top's radius + margin
-    crop_margin_mm: float = 10.0
-    max_crop_radius_mm: float = 450.0         # cap (and the radius of pass 1's crop)
-    min_points: int = 500                     # fewer cropped points: the frame is unusable
-    max_source_points: int = 4000             # ICP source subsample per scale (targets stay dense)
-    # pose graph
-    edge_angles_deg: tuple[float, ...] = (0.0, 15.0, 30.0)  # 0 = one step; others rounded to steps
-    pass1_edge_angles_deg: tuple[float, ...] = (0.0, 30.0)  # pass 1 (axis only): fewer edges ...
-    pass1_levels: int = 1                     # ... and only the coarsest ICP scale(s)
-    pass2_first_level: int = 1                # pass 2 starts at this ICP scale: pass 1 and the refitted axis
-                                              # put every good frame within a fraction of a degree, and the 4 mm
-                                              # scale lets a bad frame's edges slide far enough from the prior to
-                                              # be dropped (with "closest", 2 saved 123 -> 89 s CPU per arm)
-    edge_min_fitness: float = 0.3
-    prior_weighted_icp: bool = True           # pairwise ICP regularised towards the turntable prior
-    prior_sigma_deg: float = 0.1              # ... its rotation uncertainty (a symmetric object
-                                              #     leaves the turn angle to it)
-    prior_sigma_mm: float = 5.0               # ... its uncertainty at the table centre
-    prior_sigma_r_mm: float = 1.0             # depth noise of one point-to-plane residual
-    pass1_edge_max_deg: float = 5.0           # edges further than this from the prior are dropped
-    pass1_edge_max_mm: float = 40.0
-    edge_max_deg: float = 1.5                 # pass 2
-    edge_max_mm: float = 8.0
-    # per-frame refinement against the arm's fused cloud
-    model_voxel_mm: float = 2.0
-    frame_icp_dist_mm: float = 5.0            # also the inlier distance of fitness/RMSE
-    refine_against_model: bool = False        # one more ICP per frame against the fused arm cloud
-    # flags
-    min_fitness: float = 0.4                  # (of pairwise edges: lower for big steps)
-    max_rmse_mm: float = 3.0
-    max_residual_deg: float = 1.0
-    max_residual_mm: float = 5.0
-    # arm positions
-    refine_arms: bool = True
-    arm_min_fitness: float = 0.3
-    arm_prior_sigma_deg: float = 0.2          # the robot prior's uncertainty (regularises the ICP;
-                                              # a symmetric single object leaves the turn free)
-    arm_prior_sigma_mm: float = 10.0
-    max_arm_correction_deg: float = 5.0
-    max_arm_correction_mm: float = 50.0
-    arm_axis_max_mm: float = 15.0             # every arm's turntable axis within this of the others' (at the
-    arm_axis_max_deg: float = 3.0             # table top) and this in direction, through the arms' poses
-    arm_plane_max_mm: float = 10.0            # every arm's table top within this of the others' (along the axis)
-
-    def __post_init__(self) -> None:
-        check_ranges(self, "register", positive=(
-            "voxel_sizes_mm", "icp_dist_factor", "icp_iterations", "normal_radius_mm", "normal_max_nn",
-            "icp_tol_rad", "icp_tol_mm", "normal_voxel_mm", "min_depth_mm", "max_depth_mm", "plane_dist_mm",
-            "plane_prior_max_deg", "plane_frames", "crop_height_mm", "crop_radius_mm", "max_crop_radius_mm",
-            "min_points", "max_source_points", "pass1_levels", "prior_sigma_deg", "prior_sigma_mm",
-            "prior_sigma_r_mm", "pass1_edge_max_deg", "pass1_edge_max_mm", "edge_max_deg", "edge_max_mm",
-            "model_voxel_mm", "frame_icp_dist_mm", "max_rmse_mm", "max_residual_deg", "max_residual_mm",
-            "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm",
-            "arm_axis_max_mm", "arm_axis_max_deg", "arm_plane_max_mm"),
-            non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
-                          "pass2_first_level"),
-            fraction=("map_max_variation", "plane_window", "plane_max_below", "plane_moving_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))
-        if self.association not in ("auto", "projective", "closest"):
-            raise TdofError(f"register.association must be 'auto', 'projective' or 'closest', got '{self.association}'")
-        if self.max_depth_mm <= self.min_depth_mm:
-            raise TdofError(f"register.max_depth_mm ({self.max_depth_mm}) must be above register.min_depth_mm "
-                            f"({self.min_depth_mm})")
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "RegistrationConfig":
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(d) - set(known))
-        if unknown:
-            raise TdofError(f"unknown registration option(s): {', '.join(unknown)}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**kw)
-
-
-# ---------------------------------------------------------------------------------------------
-# results
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class FrameRegistration:
-    arm: int
-    step: int
-    T_ref_frame: np.ndarray                   # (4,4) cam(arm, step) -> cam(0, 0), mm
-    fitness: float = 0.0
-    rmse: float = float("nan")                # inlier RMSE, mm
-    residual_deg: float = float("nan")        # vs the turntable prior
-    residual_mm: float = float("nan")         # displacement of the axis point vs the prior
-    flagged: bool = False
-    reason: str = ""
-
-    def to_dict(self) -> dict:
-        return {"arm": self.arm, "step": self.step, "T_ref_frame": _T_list(self.T_ref_frame),
-                "fitness": _f(self.fitness), "rmse": _f(self.rmse), "residual_deg": _f(self.residual_deg),
-                "residual_mm": _f(self.residual_mm), "flagged": bool(self.flagged), "reason": self.reason}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FrameRegistration":
-        return cls(int(d["arm"]), int(d["step"]), _T_arr(d["T_ref_frame"]), _uf(d["fitness"]), _uf(d["rmse"]),
-                   _uf(d["residual_deg"]), _uf(d["residual_mm"]), bool(d["flagged"]), str(d.get("reason", "")))
-
-
-@dataclass
-class ArmRegistration:
-    arm: int
-    axis_dir: np.ndarray                      # (3,) unit, camera frame of (arm, step 0)
-    axis_point: np.ndarray                    # (3,) mm, where the axis meets the table top
-    plane_normal: np.ndarray                  # (3,) table top normal (towards the camera)
-    plane_d: float                            # plane: n . x + d = 0 (mm)
-    crop_radius: float                        # mm
-    T_ref_arm: np.ndarray                     # (4,4) cam(arm, 0) -> cam(0, 0)
-    T_ref_arm_prior: np.ndarray               # (4,4) the robot's (hand-eye) prior
-    fitness: float = float("nan")             # arm-to-arm ICP (nan for arm 0)
-    rmse: float = float("nan")
-    correction_deg: float = 0.0               # refined vs prior
-    correction_mm: float = 0.0
-    flagged: bool = False
-    reason: str = ""
-    association: str = ""                     # the frame-to-frame correspondences used (projective / closest)
-
-    def to_dict(self) -> dict:
-        return {"arm": self.arm, "association": self.association, "axis_dir": _v(self.axis_dir), "axis_point": _v(self.axis_point),
-                "plane_normal": _v(self.plane_normal), "plane_d": float(self.plane_d),
-                "crop_radius": float(self.crop_radius), "T_ref_arm": _T_list(self.T_ref_arm),
-                "T_ref_arm_prior": _T_list(self.T_ref_arm_prior), "fitness": _f(self.fitness),
-                "rmse": _f(self.rmse), "correction_deg": float(self.correction_deg),
-                "correction_mm": float(self.correction_mm), "flagged": bool(self.flagged), "reason": self.reason}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ArmRegistration":
-        return cls(int(d["arm"]), np.asarray(d["axis_dir"], float), np.asarray(d["axis_point"], float),
-                   np.asarray(d["plane_normal"], float), float(d["plane_d"]), float(d["crop_radius"]),
-                   _T_arr(d["T_ref_arm"]), _T_arr(d["T_ref_arm_prior"]), _uf(d["fitness"]), _uf(d["rmse"]),
-                   float(d["correction_deg"]), float(d["correction_mm"]), bool(d["flagged"]),
-                   str(d.get("reason", "")), str(d.get("association", "")))
-
-
-@dataclass
-class RegistrationResult:
-    scene_id: str
-    steps: int
-    step_deg: float
-    n_arms: int
-    frames: list[FrameRegistration]
-    arms: list[ArmRegistration]
-    config: dict = field(default_factory=dict)
-    timing_s: dict = field(default_factory=dict)
-    turntable: dict = field(default_factory=dict)   # direction used and where it came from
-
-    def frame(self, arm: int, step: int) -> FrameRegistration:
-        for f in self.frames:
-            if f.arm == arm and f.step == step:
-                return f
-        raise KeyError(f"no registration for arm {arm} step {step}")
-
-    def poses(self) -> np.ndarray:
-        """(n_arms, steps, 4, 4) T_ref_frame (NaN where a frame has none)."""
-        out = np.full((self.n_arms, self.steps, 4, 4), np.nan)
-        for f in self.frames:
-            out[f.arm, f.step] = f.T_ref_frame
-        return out
-
-    def flagged_frames(self) -> list[tuple[int, int, str]]:
-        """(arm, step, reason) of every flagged frame (also every frame of a flagged arm)."""
-        bad_arms = {a.arm: a.reason for a in self.arms if a.flagged}
-        out = []
-        for f in self.frames:
-            if f.flagged:
-                out.append((f.arm, f.step, f.reason))
-            elif f.arm in bad_arms:
-                out.append((f.arm, f.step, f"arm {f.arm} flagged: {bad_arms[f.arm]}"))
-        return out
-
-    def usable(self, arm: int, step: int) -> bool:
-        """True when the frame's pose may be used for labels."""
-        f = self.frame(arm, step)
-        return not f.flagged and not self.arms[arm].flagged
-
-    def to_dict(self) -> dict:
-        return {"format": RESULT_FORMAT, "version": RESULT_VERSION, "scene_id": self.scene_id,
-                "steps": self.steps, "step_deg": self.step_deg, "n_arms": self.n_arms,
-                "config": self.config, "timing_s": self.timing_s, "turntable": self.turntable,
-                "arms": [a.to_dict() for a in self.arms], "frames": [f.to_dict() for f in self.frames]}
-
-    @classmethod
-    def from_dict(cls, d: dict, path: str | Path | None = None) -> "RegistrationResult":
-        if not isinstance(d, dict) or d.get("format") != RESULT_FORMAT:
-            raise TdofError(f"not a registration result (format must be '{RESULT_FORMAT}')", path)
-        if int(d.get("version", 0)) > RESULT_VERSION:
-            raise TdofError(f"registration result version {d.get('version')} is newer than this tdof20 "
-                            f"reads ({RESULT_VERSION}): upgrade tdof20", path)
-        try:
-            return cls(str(d["scene_id"]), int(d["steps"]), float(d["step_deg"]), int(d["n_arms"]),
-                       [FrameRegistration.from_dict(f) for f in d["frames"]],
-                       [ArmRegistration.from_dict(a) for a in d["arms"]], dict(d.get("config", {})),
-                       dict(d.get("timing_s", {})), dict(d.get("turntable", {})))
-        except (KeyError, TypeError, ValueError) as e:
-            raise TdofError(f"malformed registration result ({type(e).__name__}: {e})", path) from None
-
-    def save(self, path: str | Path) -> Path:
-        """Write atomically as JSON."""
-        path = Path(path)
-        write_json(path, self.to_dict())
-        return path
-
-    @classmethod
-    def load(cls, path: str | Path) -> "RegistrationResult":
-        return cls.from_dict(read_json(path), path)
-
-
-def _f(x: float) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _uf(x: Any) -> float:
-    return float("nan") if x is None else float(x)
-
-
-def _v(x: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(x).reshape(-1)]
-
-
-def _T_list(T: np.ndarray) -> list[float]:
-    return _v(np.asarray(T, float).reshape(16))
-
-
-def _T_arr(x: list) -> np.ndarray:
-    a = np.asarray(x, float)
-    if a.size != 16:
-        raise ValueError("a transform must be 16 numbers")
-    return a.reshape(4, 4)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -730,7 +454,7 @@ class _ArmJob:
     """One arm position's registration as a picklable job for :func:`run_chunks` (worker
     processes): returns the fused cloud as arrays, since open3d clouds do not pickle."""
 
-    def __init__(self, session_dir: Path, cfg: "RegistrationConfig", sign: float, measured: dict | None = None):
+    def __init__(self, session_dir: Path, cfg: RegistrationConfig, sign: float, measured: dict | None = None):
         self.session_dir, self.cfg, self.sign = Path(session_dir), cfg, sign
         self.measured = measured or {}
 
@@ -860,8 +584,6 @@ def register_session(session_dir: str | Path, cfg: RegistrationConfig | None = N
     fused: dict[int, Any] = {}
     per_arm: dict[int, dict[int, np.ndarray]] = {}
     T_base_cam0 = info.T_base_cam(0)
-    from tdof20.annotate.executors import resolve_workers, run_chunks
-
     todo = [a for a in range(info.n_arms) if a not in results]
     n_workers = min(resolve_workers(workers), len(todo))
     if n_workers > 1:   # one arm per worker process; a failing arm raises its TdofError here

@@ -26,6 +26,8 @@ import dataclasses
 import functools
 import itertools
 import shutil
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -33,15 +35,19 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from tdof20.annotate.config import AnnotateConfig
+from tdof20.annotate.evaluate import evaluate_scene
 from tdof20.annotate.fusion import (crop_depth, fuse_selection, load_reconstruction, read_ply_points,
                                     write_reconstruction)
 from tdof20.annotate.label import label_scene
+from tdof20.annotate.modelbuild import build_model_from_cluster, write_models
 from tdof20.annotate.place import T_arr, T_list, copy_file, copy_models, load_meshes, match_models, place_models
+from tdof20.annotate.qa import write_qa
 from tdof20.annotate.reconstruct import reconstruct
 from tdof20.annotate.registration import RegistrationResult, register_session
 from tdof20.annotate.state import WORK, count_files, dir_hash, sha_file, sha_obj
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
+from tdof20.progress import progress as _progress
 
 __all__ = ["STAGES", "STAGE_RECORDS", "MissingInput", "Stage", "StageContext", "one_open3d_thread", "parse_stages",
            "stage"]
@@ -192,9 +198,6 @@ def ordered_prefetch(fn: Callable, items: list, ahead: int = 4, threads: int = 2
     """``fn(item)`` for each item, in order, computed on ``threads`` threads at most ``ahead``
     items ahead of the consumer (so at most ``ahead`` results wait in memory). An exception of
     ``fn`` is raised when its item's turn comes; the rest is cancelled when the consumer stops."""
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
         it = iter(items)
         pending: deque = deque(ex.submit(fn, x) for x in itertools.islice(it, max(1, ahead)))
@@ -235,8 +238,6 @@ def _reconstruct(ctx: StageContext) -> dict:
         # one depth image at a time: the TSDF integrates each and drops it. The next few are read,
         # checked, decoded and cropped on threads meanwhile (the checksum, the PNG decoder and
         # numpy let go of the GIL), in order, so the same frames go in as one by one.
-        from tdof20.progress import progress as _progress
-
         with _progress(ctx.progress, unit="fr") as bar:
             task = bar.add_task("fuse (TSDF)", total=len(todo))
             for f, (z, problem) in zip(todo, ordered_prefetch(load, todo, ahead=_FUSE_PREFETCH)):
@@ -300,8 +301,6 @@ def _model(ctx: StageContext) -> dict:
                 "models_fingerprint": dir_hash(Path(ctx.models_dir)), "objects": matched,
                 "unused_clusters": unused}
     else:
-        from tdof20.annotate.modelbuild import build_model_from_cluster, write_models
-
         if len(objects) != 1:
             raise TdofError(f"a scene with {len(objects)} objects needs their models (--models: the models folder "
                             f"of the lab's CAD models or of the single-object scenes); only single-object scenes "
@@ -449,9 +448,6 @@ LABEL = Stage(
 # qa
 # ---------------------------------------------------------------------------------------------
 def _qa(ctx: StageContext) -> dict:
-    from tdof20.annotate.evaluate import evaluate_scene
-    from tdof20.annotate.qa import write_qa
-
     reg = RegistrationResult.load(ctx.reg_file)
     lab = read_json(ctx.label_file)
     flagged = [(s["arm"], s["step"], s["reason"]) for s in lab.get("skipped", [])]

@@ -19,18 +19,16 @@ The functions take the registration's options (:class:`~tdof20.annotate.registra
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tdof20.annotate.registration_config import RegistrationConfig
 from tdof20.errors import TdofError
 from tdof20.formats.session import RawSession
 from tdof20.geometry.fitting import fit_plane
 from tdof20.geometry.transforms import invert, rotation_about_axis
 from tdof20.o3d import o3d
 
-if TYPE_CHECKING:   # the options' type only: registration imports this module
-    from tdof20.annotate.registration import RegistrationConfig
 
 __all__ = ["T_diff", "VolumeCrop", "check_turntable", "crop_points", "disk_radius", "fit_axis", "height_radius", "load_points",
            "rot_deg", "sampled_motion", "table_plane", "turntable_prior"]

@@ -21,8 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from tdof20.capture.hardware.registry import DEVICES, backends
 from tdof20.config import config_from_data, fail as _fail, load_config_file
+from tdof20.dataset.naming import VALID_FORMS, normalize_scene_id
+from tdof20.errors import TdofError
 from tdof20.formats.session import MAX_STEPS
+from tdof20.sim.lab import DIRECTIONS, clutter_names
 
 TWO_PI = 2 * math.pi
 PHASES = ("transparent", "opaque")
@@ -122,7 +126,8 @@ class CaptureConfig:
         return d
 
 
-BACKENDS = {"robot": ("sim", "ur_rtde"), "turntable": ("sim", "grbl"), "camera": ("sim", "oakd")}
+#: the backends each device may name: "sim" and its vendors' (tdof20.capture.hardware.registry)
+BACKENDS = {device: backends(device) for device in DEVICES}
 
 
 # ------------------------------------------------------------------------------------ loading
@@ -140,9 +145,6 @@ def load_config(path: str | Path) -> CaptureConfig:
 def validate(cfg: CaptureConfig) -> CaptureConfig:
     """Everything that can be checked without hardware (workspace limits: see plan.check_workspace)."""
     src = cfg.source
-    from tdof20.errors import TdofError
-    from tdof20.dataset.naming import VALID_FORMS, normalize_scene_id
-
     s = cfg.session
     try:
         scene_name = normalize_scene_id(s.scene_id)
@@ -219,8 +221,6 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
         _fail(src, "sim.seed", f"must be >= 0, got {cfg.sim.seed}")
     if cfg.sim.n_arms < 1 or cfg.sim.n_arms > 8:
         _fail(src, "sim.n_arms", "must be in 1..8")
-    from tdof20.sim.lab import DIRECTIONS, clutter_names
-
     if t.direction not in DIRECTIONS:
         _fail(src, "turntable.direction", f"must be one of {', '.join(DIRECTIONS)} (seen from above), got '{t.direction}'")
     sm = cfg.sim

@@ -17,6 +17,7 @@ from tdof20.errors import TdofError
 from tdof20.formats import ArmPosition, SessionInfo
 from tdof20.geometry import PinholeCamera
 from tdof20.sim.rig import DEFAULT_T_TCP_CAM, UR5_HOME, RigLayout, ur5_fk
+from tdof20.sim.scenes import get_scene
 
 
 def hand_eye(cfg: CaptureConfig) -> np.ndarray:
@@ -107,8 +108,6 @@ def estimate_duration(cfg: CaptureConfig, targets: list[np.ndarray] | None = Non
 
 def session_info(cfg: CaptureConfig, intrinsics: dict, targets: list[np.ndarray] | None = None) -> SessionInfo:
     """session.json of the capture: the plan, the camera as the device reports it."""
-    from tdof20.sim.scenes import get_scene
-
     targets = targets if targets is not None else arm_targets(cfg)
     cam = PinholeCamera.from_dict(intrinsics)
     objs = list(cfg.session.objects) or (get_scene(cfg.session.scene_id).obj_ids if cfg.is_sim else [])

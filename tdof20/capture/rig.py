@@ -1,4 +1,6 @@
-"""Assemble the devices a capture config names (one module per vendor, imported only when used)."""
+"""Assemble the devices a capture config names: each hardware device from its vendor's line in
+:mod:`tdof20.capture.hardware.registry` (the vendor module imported only when used), or the
+simulated rig, whose devices share one world."""
 
 from __future__ import annotations
 
@@ -6,11 +8,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from tdof20.capture.config import CaptureConfig
 from tdof20.capture.hardware.interfaces import RGBDCamera, Robot, Turntable
+from tdof20.capture.hardware.registry import DEVICES, vendor
 from tdof20.capture.plan import arm_targets, hand_eye
+from tdof20.sim.lab import TableMotion, true_hand_eye
+from tdof20.sim.rig import RigLayout, oakd_camera, ur5_fk
+from tdof20.sim.scenes import get_scene
 
 
 @dataclass
@@ -27,26 +31,19 @@ class Rig:
 
 
 def build_rig(cfg: CaptureConfig, faults: dict | None = None) -> Rig:
+    """The rig of a (checked) config: the simulated one, or each device made by the vendor its
+    section's ``backend`` names (nothing connects yet). ``faults``: the simulator's injected failures."""
     if cfg.is_sim:
         return _sim_rig(cfg, faults)
-    from tdof20.capture.hardware.grbl import GrblTurntable
-    from tdof20.capture.hardware.oakd import OakDCamera
-    from tdof20.capture.hardware.ur import URRobot
-
-    r, t, c = cfg.robot, cfg.turntable, cfg.camera
-    robot = URRobot(r.host, connect_timeout_s=r.connect_timeout_s, joint_tolerance_rad=r.joint_tolerance_rad)
-    table = GrblTurntable(t.port, baudrate=t.baudrate, axis=t.axis, units_per_degree=t.units_per_degree,
-                          feed_deg_per_s=t.feed_deg_per_s, timeout_s=t.timeout_s, home=t.home)
-    camera = OakDCamera(width=c.width, height=c.height, fps=c.fps, device_id=c.device_id or None)
+    robot, table, camera = (vendor(d, getattr(cfg, d).backend).make(getattr(cfg, d))
+                            for d in DEVICES)
     return Rig(robot, table, camera)
 
 
 def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
+    # the renderer imports open3d (tdof20.o3d) at the top: only a simulated rig needs it
     from tdof20.capture.hardware.sim import SimCamera, SimRobot, SimTurntable, SimWorld
-    from tdof20.sim.lab import TableMotion, true_hand_eye
     from tdof20.sim.render import SimRenderer
-    from tdof20.sim.rig import RigLayout, oakd_camera, ur5_fk
-    from tdof20.sim.scenes import get_scene
 
     s = cfg.sim
     T_tcp_cam = hand_eye(cfg)  # what session.json records, and what the arm targets are planned with
@@ -63,7 +60,7 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
         world.phase = phase
 
     def after_capture(out: Path, show_progress: bool = True) -> None:
-        from tdof20.sim.truth import write_truth
+        from tdof20.sim.truth import write_truth   # imports the renderer (open3d)
 
         write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress, table=table,
                     rig={"T_tcp_cam": T_tcp_cam_true, "T_tcp_cam_recorded": T_tcp_cam, "clutter": list(s.clutter),

@@ -27,17 +27,22 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
+from tdof20.dataset.layouts.base import TARGET_MIN_VISIB
 from tdof20.errors import TdofError
 from tdof20.formats import (BopSceneWriter, atomic_write_bytes, check_output_dir, model_path, png_header, read_bytes,
                             read_json, read_png, write_json, write_model_mesh, write_models_info)
 from tdof20.formats.tdof20_release import (ClassGeometry, Release, image_size, pose_units, read_class_mask,
                                            read_geometry, read_pose, read_release)
+from tdof20.geometry import PinholeCamera
+from tdof20.geometry.sampling import sample_mesh_surface
+from tdof20.geometry.transforms import rotation_about_axis
+from tdof20.objects import object_by_name
 from tdof20.progress import progress
 
 SOURCE = "tdof20-release"
 MARKER = ".import.json"
-TARGET_MIN_VISIB = 0.1  # BOP: instances at least 10 % visible are targets
 MIN_MASK_IOU = 0.5      # the released mask and the models rendered at the poses must overlap this much
 SPLIT_LISTS = {"simple_train": "train", "simple_test": "test", "hard_train": "hard_train", "hard_test": "hard_test"}
 DEPTH_MODES = {"raw": "depth/: the release's broken_depth/ (the sensor's depth, holes = 0)",
@@ -128,8 +133,6 @@ def _check_images(rel: Release, frames: dict[str, list[int]], size: tuple[int, i
 
 
 def _camera(rel: Release, hw: tuple[int, int]):
-    from tdof20.geometry import PinholeCamera
-
     K = rel.intrinsics.K
     h, w = hw
     if not (0 < K[0, 2] < w and 0 < K[1, 2] < h):
@@ -151,8 +154,6 @@ def _transforms(fp, f_pose: float) -> list[np.ndarray]:
 def _split_class(pix: np.ndarray, members: list[int], lab) -> list[np.ndarray]:
     """The pixels of one class id seen twice in a frame, split between its instances: each pixel
     goes to the instance whose rendered visible (else full) region is nearest."""
-    from scipy.ndimage import distance_transform_edt
-
     lbl = np.zeros(pix.shape, np.int32)
     for j, i in enumerate(members):
         lbl[lab.visible == i] = j + 1
@@ -222,10 +223,7 @@ def _symmetries(geo: dict[int, ClassGeometry]) -> dict[int, tuple[dict, str]]:
     """BOP symmetries per class from the catalog when the class name is one of ours and its
     symmetries map the released mesh onto itself (95 % of surface samples within 1 % of the
     diameter); else none. -> {class id: (models_info keys, a note)}."""
-    from tdof20.geometry.sampling import sample_mesh_surface
-    from tdof20.geometry.transforms import rotation_about_axis
     from tdof20.o3d import o3d
-    from tdof20.objects import object_by_name
 
     out = {}
     for cid, g in geo.items():
@@ -287,7 +285,7 @@ def import_tdof20(src: str | Path, out: str | Path | None, *, check: bool = Fals
     intr = rel.intrinsics
     hw = _check_images(rel, frames, (intr.height, intr.width) if intr.width else None, show_progress)
     camera = _camera(rel, hw)
-    from tdof20.geometry.raycast import ModelRaycaster
+    from tdof20.geometry.raycast import ModelRaycaster  # imports open3d at top level
 
     raycaster = ModelRaycaster({cid: (g.vertices, g.faces) for cid, g in geo.items()}, camera)
     first_iou = {s: _precheck_scene(rel, s, ims[0], poses[(s, ims[0])], f_pose, raycaster, camera)

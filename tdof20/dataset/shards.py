@@ -28,6 +28,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from tdof20.dataset.layouts.base import DatasetReader
 from tdof20.errors import TdofError
 from tdof20.formats.bop import METRES_BELOW_MM, median_distance_if_metres, read_models_info, read_scene
 from tdof20.formats.io import check_output_file, read_png
@@ -41,12 +42,10 @@ IMAGE_KEYS = tuple(SHARD_DTYPES)
 def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: dict | None = None,
                models_dir: str | Path | None = None, progress_bar=None, split: str | None = None) -> Path:
     """Write the images (scene_id, im_id) of a dataset into one HDF5 file, atomically. ``source``:
-    a :class:`~tdof20.dataset.reader.Dataset` (its ``split`` folder; restored depth stored or
-    rendered, see :meth:`~tdof20.dataset.reader.Dataset.render_restored`) or a folder of BOP
+    a :class:`~tdof20.dataset.layouts.base.DatasetReader` (its ``split`` folder; restored depth stored or
+    rendered, see :meth:`~tdof20.dataset.layouts.base.DatasetReader.render_restored`) or a folder of BOP
     scenes ``{scene_id:06d}/`` (restored depth where depth_restored/ has it, else 0)."""
-    from tdof20.dataset.reader import Dataset
-
-    reader = source if isinstance(source, Dataset) else None
+    reader = source if isinstance(source, DatasetReader) else None
     scenes_root = reader.root if reader is not None else Path(source)
     out = check_output_file(out, "the shard", "HDF5 file")
     if not images:

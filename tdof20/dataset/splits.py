@@ -37,8 +37,12 @@ HARD_TEST_MULTI = (2, 8, 9, 10, 11, 15)  # multi/NN of the release's numbering (
 SPLITS = ("simple", "hard")
 PARTS = ("train", "test")
 VAL_PART = "val"
-__all__ = ["HARD_TEST_MULTI", "PAPER_HARD", "PAPER_SIMPLE", "PARTS", "SPLITS", "min_simple_steps", "part_needs",
-           "part_of", "VAL_PART", "val_steps", "validation_images", "scene_can_serve", "scene_name", "scene_number", "simple_test_steps"]
+#: the protocols' rules in one line each, as dataset_info.json and tdof20_bop.json record them
+SPLIT_RULES = {"simple": "single-object scenes, contiguous test arc per arm position (docs/dataset.md)",
+               "hard": "train: single + multi 00,01,03-07,12-14,16-19; test: multi 02,08,09,10,11,15"}
+__all__ = ["HARD_TEST_MULTI", "PAPER_HARD", "PAPER_SIMPLE", "PARTS", "SPLITS", "SPLIT_PART_SCENES", "SPLIT_RULES",
+           "min_simple_steps", "part_needs", "part_of", "VAL_PART", "val_steps", "validation_images", "scene_can_serve", "scene_name",
+           "scene_number", "simple_test_steps"]
 
 
 def _is_single(scene_id: int) -> bool:
@@ -55,6 +59,15 @@ def _hard_train_multi() -> str:
         else:
             runs.append([m])
     return ", ".join(", ".join(f"{m:02d}" for m in r) if len(r) < 3 else f"{r[0]:02d}-{r[-1]:02d}" for r in runs)
+
+
+#: what each part of a split takes, for the message when it is empty
+SPLIT_PART_SCENES = {
+    ("simple", "train"): "the single-object scenes' frames outside the test arcs",
+    ("simple", "test"): "one arc of turntable steps per arm position of the single-object scenes",
+    ("hard", "train"): f"the single-object scenes and multi-object scenes {_hard_train_multi()}",
+    ("hard", "test"): "multi-object scenes " + ", ".join(f"{m:02d}" for m in HARD_TEST_MULTI),
+}
 
 
 def simple_test_steps(arm: int, steps: int, n_arms: int = 4) -> set[int]:

@@ -19,10 +19,14 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
+from tdof20.dataset.layouts import open_dataset
+from tdof20.dataset.layouts.base import TARGET_MIN_VISIB
+from tdof20.dataset.splits import VAL_PART, part_of
+from tdof20.dataset.stats import split_images
 from tdof20.errors import TdofError
+from tdof20.formats import write_json
 
 PARTS_WITH_VAL = ("train", "test", "val", "train-val")
-TARGET_MIN_VISIB = 0.1  # as the test targets (BOP: instances at least 10 % visible)
 
 
 def check_part(part: str, allowed: tuple[str, ...] = PARTS_WITH_VAL, option: str = "--part") -> str:
@@ -45,11 +49,8 @@ def _positions(ds, sid: int) -> dict:
 
 def split_with_val(root: str | Path, split: str) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """(train minus validation, validation) of ``split``'s train part of the dataset at ``root``."""
-    from tdof20.dataset.splits import VAL_PART, part_of
-    from tdof20.dataset.reader import open_dataset
-
     ds = open_dataset(root)
-    if ds.layout != "tdof20":
+    if not ds.has_validation_arcs:
         raise TdofError("a BOP-layout dataset has no validation part (no turntable arcs): train on its split "
                         "folder and hold images out with an explicit list", root)
     train_images = ds.frames(split, "train")
@@ -69,8 +70,6 @@ def part_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]
     """(scene_id, im_id) of ``part`` ('train', 'test', 'val', 'train-val') of ``split``."""
     check_part(part)
     if part in ("train", "test"):
-        from tdof20.dataset.build import split_images
-
         return split_images(root, split, part)
     keep, val = split_with_val(root, split)
     return val if part == "val" else keep
@@ -79,8 +78,6 @@ def part_images(root: str | Path, split: str, part: str) -> list[tuple[int, int]
 def val_targets(root: str | Path, split: str) -> list[dict]:
     """BOP targets [{"scene_id", "im_id", "obj_id", "inst_count"}] of the validation images: every
     object instance at least 10 % visible, as the test targets."""
-    from tdof20.dataset.reader import open_dataset
-
     ds = open_dataset(root)
     out = []
     for sid, im in split_with_val(root, split)[1]:
@@ -96,8 +93,6 @@ def val_targets(root: str | Path, split: str) -> list[dict]:
 def write_val_targets(root: str | Path, split: str, path: str | Path | None = None) -> Path:
     """Write :func:`val_targets` (default: ROOT/.cache/val_targets_{split}.json, atomically); returns the path.
     A validation part without targets is refused."""
-    from tdof20.formats import write_json
-
     root = Path(root)
     path = Path(path) if path is not None else root / ".cache" / f"val_targets_{split}.json"
     tg = val_targets(root, split)

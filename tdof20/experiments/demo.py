@@ -45,9 +45,16 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from tdof20.annotate.evaluate import TARGETS
+from tdof20.capture import run_capture, sim_config
+from tdof20.dataset.build import build_dataset, stats
 from tdof20.errors import TdofError
 from tdof20.formats import atomic_write_bytes, read_json, write_json
+from tdof20.methods.registry import get_method
+from tdof20.objects.catalog import export_models
 from tdof20.progress import console
+from tdof20.scoring.scoring import run_info, run_line, score_command
+from tdof20.sim.scenes import get_scene, normalize_scene_id
 
 DEFAULT_SCENES = ("single/juice_cup_340", "multi/08")
 DEFAULT_METHODS = ("hff6dof", "pvnet")
@@ -70,8 +77,6 @@ def _n(k: int, word: str) -> str:
 def check_methods(methods) -> tuple[str, ...]:
     """The demo's methods, checked (registered, none twice, at least one) before anything is written;
     an unknown one is one line listing the known ones."""
-    from tdof20.methods.registry import get_method
-
     names = tuple(get_method(m).name for m in methods)
     if not names:
         raise TdofError("give at least one method (--methods hff6dof,pvnet)")
@@ -168,13 +173,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     side (default HFF6DoF and PVNet); ``image_size`` (H, W), ``batch_size``, ``lr``: the short
     training of each (CPU-sized by default); ``epochs``: one number for every method, a mapping
     {method: epochs}, or None = :data:`DEFAULT_EPOCHS`."""
-    from tdof20.annotate.evaluate import TARGETS
-    from tdof20.annotate.config import AnnotateConfig
-    from tdof20.annotate.pipeline import annotate, summary_text
-    from tdof20.dataset.build import build_dataset, stats
-    from tdof20.capture import run_capture, sim_config
-    from tdof20.objects.catalog import export_models
-    from tdof20.sim.scenes import get_scene, normalize_scene_id
+    from tdof20.annotate.config import AnnotateConfig  # imports open3d
+    from tdof20.annotate.pipeline import annotate, summary_text  # imports open3d
 
     out = Path(out)
     if not tuple(scenes):
@@ -288,9 +288,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         return result
 
     # train, predict, score ----------------------------------------------------------------
-    from tdof20.scoring.scoring import run_info, run_line, score_command
-    from tdof20.methods.predict import predict
-    from tdof20.methods.train import train as train_method
+    from tdof20.methods.predict import predict  # imports torch
+    from tdof20.methods.train import train as train_method  # imports torch
 
     names = ", ".join(label(m) for m in methods)
     _stage(4, "train", ", ".join(f"{label(m)} {_n(n_epochs[m], 'epoch')}" for m in methods)

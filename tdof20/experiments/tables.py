@@ -22,107 +22,34 @@ and the outputs are plain structures (``protocol_table`` ...) rendered as Markdo
 Conventions: the best value of a row is bold per protocol (the paper compares methods, never
 simple against hard); a result made with ground-truth masks carries "(oracle masks)" wherever it
 appears and never takes the bold (it is not a valid submission); a cell without a result is "—".
-How each agreement claim is judged is in :data:`CLAIMS` (and docs/reproduce.md).
+How each agreement claim is judged is in :data:`tdof20.experiments.agreement.CLAIMS` (and
+docs/reproduce.md); :class:`Entry` lives in :mod:`tdof20.experiments.entries`.
 """
 
 from __future__ import annotations
 
-import csv
 import io
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from tdof20.errors import TdofError
+from tdof20.experiments.agreement import CLAIMS, PAPER, agreement, agreement_csv, agreement_markdown  # noqa: F401
+from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, pct, signed
+from tdof20.formats.io import atomic_write_bytes, write_json
+from tdof20.objects import get_object
+from tdof20.scoring.report import accuracy_curve
+from tdof20.scoring.scoring import PROJ_PLOT_MAX
 
-SPLITS = ("simple", "hard")
-MISSING = "—"
-ORACLE = "oracle masks"
 KEY_TITLES = {"add_s": "ADD(S)", "proj2d": "2D projection"}
 TABLE_TITLES = {
     "add_s": "Table 1 — ADD(S) accuracy (%): mean model-point distance < 10 % of the diameter (closest point "
              "for symmetric objects)",
     "proj2d": "Table 2 — 2D projection accuracy (%): mean reprojection distance < 5 px",
 }
-
-#: the paper's stated figures (sections 5.4-5.5); accuracies as fractions
-PAPER = {
-    "hff6dof_hard_add_s": 0.5050,          # "an average ADD of 50.5 %"; "the highest ADD of 50.50 %" (3 fused)
-    "add_s_over_densefusion_hard": 0.0713,  # "7.13 % higher ADD accuracy on TDoF20-hard compared to DenseFusion"
-    "proj2d_over_ffb6d_hard": 0.1191,      # "2D projection ... 11.91 % higher than that of FFB6DoF"
-    "hff6dof_fps": 29.38,                  # on a GTX 1080Ti
-    "hff6dof_parameters_M": 56.82,
-    "macs_G": {"hff6dof": 85.12, "densefusion": 142.25, "ffb6d": 215.54},
-    "seg_gain_add_s": 0.0852,
-    "seg_gain_proj2d": 0.0263,
-    "best_fuse_stages": 3,
-    "gpu": "GTX 1080Ti",
-}
-#: how close a figure must be to the paper's to "agree"
-TOLERANCE = {"accuracy_pp": 5.0,    # percentage points, for accuracies and margins
-             "parameters_rel": 0.01,  # relative, parameters
-             "macs_rel": 0.10,        # relative, multiply-adds
-             "fps_rel": 0.10}         # ours at least (1 - this) x the paper's FPS
-#: the claims :func:`agreement` judges, and how
-CLAIMS = {
-    "hff6dof_hard_add_s": "HFF6DoF's mean ADD(S) on TDoF20-hard is 50.50 %: yes when ours is within "
-                          "±5 percentage points",
-    "hff6dof_best_add_s_hard": "HFF6DoF has the best mean ADD(S) on TDoF20-hard, 7.13 % above DenseFusion, the best "
-                               "of the others: yes when HFF6DoF is first and DenseFusion second",
-    "hff6dof_best_proj2d_hard": "HFF6DoF has the best mean 2D projection on TDoF20-hard, 11.91 % above FFB6D, the "
-                                "best of the others: yes when HFF6DoF is first and FFB6D second",
-    "simple_above_hard": "every method scores a higher mean ADD(S) trained and tested on TDoF20-simple than on "
-                         "TDoF20-hard: yes when it holds for every method with both",
-    "hff6dof_fps": "HFF6DoF runs at 29.38 FPS (GTX 1080Ti): yes when ours, end to end on this device, is at least "
-                   "90 % of it",
-    "hff6dof_parameters": "HFF6DoF has 56.82 M parameters: yes within 1 %",
-    "macs_hff6dof": "HFF6DoF: 85.12 G multiply-adds at 480x640: yes within 10 %",
-    "macs_densefusion": "DenseFusion: 142.25 G multiply-adds at 480x640: yes within 10 %",
-    "macs_ffb6d": "FFB6D: 215.54 G multiply-adds at 480x640: yes within 10 %",
-    "macs_order": "HFF6DoF needs the fewest multiply-adds, then DenseFusion, then FFB6D: yes when our counts rank so",
-    "seg_gain_add_s": "the segmentation module adds 8.52 % ADD(S) (hard): yes when ours is a gain (> 0)",
-    "seg_gain_proj2d": "the segmentation module adds 2.63 % 2D projection (hard): yes when ours is a gain (> 0)",
-    "best_fuse_stages": "3 fused stages give the best ADD(S) on TDoF20-hard: yes when 3 is our best of the "
-                        "stages run",
-}
-
-
-@dataclass(frozen=True)
-class Entry:
-    """One scored result. label: the column title ("HFF6DoF", "HFF6DoF 3D voting + LSQ"); method:
-    the registry's name ('hff6dof', 'pvnet', ...); split: 'simple' | 'hard'; scores: the dict of
-    :func:`~tdof20.scoring.scoring.score`; oracle_masks: ground-truth masks picked the object
-    pixels; note: a short remark printed under the table."""
-
-    label: str
-    method: str
-    split: str
-    scores: Mapping[str, Any]
-    oracle_masks: bool = False
-    note: str = ""
-    extra: Mapping[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.split not in SPLITS:
-            raise TdofError(f"result '{self.label}': split must be simple or hard, got '{self.split}'")
-        if not isinstance(self.scores, Mapping) or "objects" not in self.scores or "mean" not in self.scores:
-            raise TdofError(f"result '{self.label}' ({self.split}): not a score dict (needs 'objects' and 'mean')")
-
-    def value(self, key: str, obj_id: int | None = None) -> float | None:
-        """The score ``key`` of one object (None: the mean over objects); None where absent."""
-        d = self.scores["mean"] if obj_id is None else self.scores["objects"].get(str(int(obj_id)))
-        if not d or d.get("n", 1) == 0:
-            return None
-        v = d.get(key)
-        return None if v is None else float(v)
-
-    @property
-    def title(self) -> str:
-        return f"{self.label} · {self.split}" + (f" ({ORACLE})" if self.oracle_masks else "")
 
 
 # --------------------------------------------------------------------------------------------
@@ -132,8 +59,6 @@ class Entry:
 def catalog_objects(obj_ids: Sequence[int]) -> dict[int, tuple[str, bool]]:
     """obj_id -> (name, asymmetric?) from the catalog for ids 1..20; 'obj_NNNNNN' (symmetry unknown:
     not marked) otherwise."""
-    from tdof20.objects import get_object
-
     out = {}
     for o in sorted({int(i) for i in obj_ids}):
         if 1 <= o <= 20:
@@ -162,10 +87,6 @@ def _object_ids(entries: Sequence[Entry]) -> list[int]:
 
 # --------------------------------------------------------------------------------------------
 # Tables 1 and 2
-
-
-def _pct(v: float | None, digits: int = 2) -> str:
-    return MISSING if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.{digits}f}"
 
 
 def _best(values: Sequence[float | None], eligible: Sequence[bool]) -> list[bool]:
@@ -241,7 +162,7 @@ def protocol_table(entries: Sequence[Entry], key: str = "add_s",
 
 
 def _md_cell(v, bold: bool) -> str:
-    t = _pct(v)
+    t = pct(v)
     return f"**{t}**" if bold and v is not None else t
 
 
@@ -260,14 +181,6 @@ def protocol_markdown(table: Mapping) -> str:
     return "\n".join(out + [""] + table["notes"])
 
 
-def _csv(rows: Sequence[Sequence[Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    for r in rows:
-        w.writerow(["" if v is None else v for v in r])
-    return buf.getvalue()
-
-
 def _num(v: float | None, scale: float = 100.0, digits: int = 4) -> float | None:
     return None if v is None else round(scale * float(v), digits)
 
@@ -280,7 +193,7 @@ def protocol_csv(table: Mapping) -> str:
         f"{c['label']}/{c['split']}" + (f" ({ORACLE})" if c["oracle_masks"] else "") for c in cols]
     rows = [head] + [[r["obj_id"], r["name"], int(r["asymmetric"])] + [_num(v) for v in r["values"]]
                      for r in table["rows"]]
-    return _csv(rows)
+    return csv_text(rows)
 
 
 # --------------------------------------------------------------------------------------------
@@ -350,7 +263,7 @@ def efficiency_markdown(table: Mapping) -> str:
 def efficiency_csv(table: Mapping) -> str:
     keys = ["method", "device", "parameters_M", "paper_parameters_M", "macs_G", "paper_macs_G", "network_ms",
             "network_fps", "pose_ms", "end_to_end_ms", "end_to_end_fps", "paper_fps", "error"]
-    return _csv([keys] + [[r.get(k) for k in keys] for r in table["rows"]])
+    return csv_text([keys] + [[r.get(k) for k in keys] for r in table["rows"]])
 
 
 # --------------------------------------------------------------------------------------------
@@ -416,12 +329,8 @@ def ablation_markdown(table: Mapping) -> str:
                    f"{_md_cell(r['proj2d'], r['proj2d_bold'])} |")
     if "gain" in table:
         g = table["gain"]
-        out.append(f"| gain of the head | | {_signed(g['add_s'])} | {_signed(g['proj2d'])} |")
+        out.append(f"| gain of the head | | {signed(g['add_s'])} | {signed(g['proj2d'])} |")
     return "\n".join(out + [""] + table["notes"])
-
-
-def _signed(v: float | None) -> str:
-    return MISSING if v is None else f"{100 * v:+.2f}"
 
 
 def ablation_csv(table: Mapping) -> str:
@@ -430,146 +339,7 @@ def ablation_csv(table: Mapping) -> str:
              for r in table["rows"]]
     if "gain" in table:
         rows.append(["gain", "", "", _num(table["gain"]["add_s"]), _num(table["gain"]["proj2d"])])
-    return _csv(rows)
-
-
-# --------------------------------------------------------------------------------------------
-# agreement
-
-
-def _claim(cid: str, paper: str, ours: str, agrees: bool | None, detail: str = "") -> dict:
-    return {"id": cid, "claim": CLAIMS[cid], "paper": paper, "ours": ours, "agrees": agrees, "detail": detail}
-
-
-def _primary(entries: Sequence[Entry], method: str, split: str) -> Entry | None:
-    """The first result of ``method`` on ``split`` without oracle masks (then with them)."""
-    cands = [e for e in entries if e.method == method and e.split == split]
-    clean = [e for e in cands if not e.oracle_masks]
-    chosen = [e for e in clean if e.extra.get("primary")]  # the row chosen on validation to stand for the method
-    return (chosen or clean or cands or [None])[0]
-
-
-def _ranking(entries: Sequence[Entry], key: str, first: str, second: str, margin: float, cid: str) -> dict:
-    per = {}
-    for e in sorted(entries, key=lambda e: not e.extra.get("primary")):  # a row chosen on validation first
-        if e.split == "hard" and not e.oracle_masks and e.method not in per and e.value(key) is not None:
-            per[e.method] = e
-    mine = per.get(first)
-    others = {m: e for m, e in per.items() if m != first}
-    paper = f"{first} first, {second} second, +{100 * margin:.2f} %"
-    if mine is None or not others:
-        return _claim(cid, paper, "not measured (needs " + first + " and another method on hard)", None)
-    best_m, best_e = max(others.items(), key=lambda kv: kv[1].value(key))
-    diff = mine.value(key) - best_e.value(key)
-    order = sorted(per, key=lambda m: -per[m].value(key))
-    ok = diff > 0 and best_m == second and sum(1 for e in others.values() if e.value(key) == best_e.value(key)) == 1
-    ranking = order[0]
-    for a, b in zip(order, order[1:]):
-        ranking += (" = " if per[a].value(key) == per[b].value(key) else " > ") + b
-    ours = f"{ranking}; {first} {_pct(mine.value(key))} % vs {best_m} {_pct(best_e.value(key))} % " \
-           f"({_signed(diff)} %)"
-    return _claim(cid, paper, ours, ok, f"margin differs from the paper's by {100 * (diff - margin):+.2f} points")
-
-
-def agreement(entries: Sequence[Entry], profiles: Sequence[Mapping] = (),
-              fusion: Mapping[int, Entry] | None = None, seg_on: Entry | None = None,
-              seg_off: Entry | None = None) -> list[dict]:
-    """The paper's stated figures beside ours: one dict per claim of :data:`CLAIMS` — {"id",
-    "claim", "paper", "ours", "agrees" (True / False / None = not measured), "detail"}."""
-    tol = TOLERANCE
-    out = []
-    hff = _primary(entries, "hff6dof", "hard")
-    if hff is None or hff.value("add_s") is None:
-        out.append(_claim("hff6dof_hard_add_s", "50.50 %", "not measured", None))
-    else:
-        v = hff.value("add_s")
-        out.append(_claim("hff6dof_hard_add_s", "50.50 %", f"{_pct(v)} % ({hff.title})",
-                          abs(100 * (v - PAPER["hff6dof_hard_add_s"])) <= tol["accuracy_pp"],
-                          f"{100 * (v - PAPER['hff6dof_hard_add_s']):+.2f} points"))
-    out.append(_ranking(entries, "add_s", "hff6dof", "densefusion", PAPER["add_s_over_densefusion_hard"],
-                        "hff6dof_best_add_s_hard"))
-    out.append(_ranking(entries, "proj2d", "hff6dof", "ffb6d", PAPER["proj2d_over_ffb6d_hard"],
-                        "hff6dof_best_proj2d_hard"))
-    pairs = []
-    for m in dict.fromkeys(e.method for e in entries):
-        s, h = _primary(entries, m, "simple"), _primary(entries, m, "hard")
-        if s is not None and h is not None and s.value("add_s") is not None and h.value("add_s") is not None:
-            pairs.append((m, s.value("add_s"), h.value("add_s")))
-    out.append(_claim("simple_above_hard", "higher on simple for every method",
-                      "; ".join(f"{m} {_pct(a)} vs {_pct(b)}" for m, a, b in pairs) or "not measured",
-                      all(a > b for _, a, b in pairs) if pairs else None))
-
-    prof = {p.get("method"): p for p in profiles if not p.get("error")}
-    hp = prof.get("hff6dof")
-    if hp is None or hp.get("end_to_end_fps") is None:
-        out += [_claim("hff6dof_fps", "29.38 FPS (GTX 1080Ti)", "not measured", None),
-                _claim("hff6dof_parameters", "56.82 M", "not measured", None)]
-    else:
-        fps = float(hp["end_to_end_fps"])
-        out.append(_claim("hff6dof_fps", "29.38 FPS (GTX 1080Ti)",
-                          f"{fps:.2f} FPS end to end ({hp.get('network_fps')} network only) on {hp.get('device')}",
-                          fps >= (1 - tol["fps_rel"]) * PAPER["hff6dof_fps"]))
-        pm = float(hp["parameters_M"])
-        out.append(_claim("hff6dof_parameters", "56.82 M", f"{pm:.2f} M",
-                          abs(pm - PAPER["hff6dof_parameters_M"]) <= tol["parameters_rel"] * PAPER["hff6dof_parameters_M"]))
-    macs = {}
-    for m, paper_g in PAPER["macs_G"].items():
-        p = prof.get(m)
-        g = None if p is None else p.get("macs_480x640_G")
-        if g is None:
-            out.append(_claim(f"macs_{m}", f"{paper_g} G", "not measured", None))
-            continue
-        macs[m] = float(g)
-        out.append(_claim(f"macs_{m}", f"{paper_g} G", f"{float(g):.2f} G",
-                          abs(float(g) - paper_g) <= tol["macs_rel"] * paper_g, f"{100 * (float(g) / paper_g - 1):+.1f} %"))
-    order = ("hff6dof", "densefusion", "ffb6d")
-    if all(m in macs for m in order):
-        ours = " < ".join(sorted(order, key=lambda m: macs[m]))
-        out.append(_claim("macs_order", "hff6dof < densefusion < ffb6d", ours,
-                          macs["hff6dof"] < macs["densefusion"] < macs["ffb6d"]))
-    else:
-        out.append(_claim("macs_order", "hff6dof < densefusion < ffb6d", "not measured", None))
-
-    for key, cid in (("add_s", "seg_gain_add_s"), ("proj2d", "seg_gain_proj2d")):
-        paper = f"+{100 * PAPER[cid]:.2f} %"
-        a = None if seg_on is None else seg_on.value(key)
-        b = None if seg_off is None else seg_off.value(key)
-        if a is None or b is None:
-            out.append(_claim(cid, paper, "not measured", None))
-        else:
-            mark = f" (without the head: {ORACLE})" if seg_off.oracle_masks else ""
-            out.append(_claim(cid, paper, f"{_signed(a - b)} % ({_pct(a)} with, {_pct(b)} without{mark})", a - b > 0))
-    vals = {int(k): e.value("add_s") for k, e in (fusion or {}).items() if e.value("add_s") is not None}
-    if len(vals) < 2 or 3 not in vals:
-        out.append(_claim("best_fuse_stages", "3", "not measured (needs 3 and another number of fused stages)", None))
-    else:
-        top = max(vals.values())
-        best = [k for k in sorted(vals) if vals[k] == top]
-        shown = " = ".join(str(k) for k in best) + (" (tie)" if len(best) > 1 else "")
-        out.append(_claim("best_fuse_stages", "3", f"{shown} (" + ", ".join(f"{k}: {_pct(v)}" for k, v in
-                                                                    sorted(vals.items())) + ")", best == [3]))
-    return out
-
-
-def _yes(v: bool | None) -> str:
-    return "not measured" if v is None else ("yes" if v else "no")
-
-
-def agreement_markdown(claims: Sequence[Mapping]) -> str:
-    out = ["**Agreement with the paper's stated figures**", "", "| claim | paper | ours | agrees |",
-           "| --- | --- | --- | :---: |"]
-    for c in claims:
-        out.append(f"| {c['claim']} | {c['paper']} | {c['ours']} | {_yes(c['agrees'])} |")
-    n = [c["agrees"] for c in claims]
-    out += ["", f"{sum(1 for v in n if v is True)} of {sum(1 for v in n if v is not None)} claims measured agree "
-                f"({sum(1 for v in n if v is None)} not measured). Judged from what the data gives; nothing was "
-                "tuned on a test part."]
-    return "\n".join(out)
-
-
-def agreement_csv(claims: Sequence[Mapping]) -> str:
-    keys = ["id", "claim", "paper", "ours", "agrees", "detail"]
-    return _csv([keys] + [[c[k] if k != "agrees" else _yes(c[k]) for k in keys] for c in claims])
+    return csv_text(rows)
 
 
 # --------------------------------------------------------------------------------------------
@@ -580,9 +350,6 @@ def curves_from_evaluation(ev, points: int = 101) -> dict:
     """Accuracy-vs-threshold curves of a :class:`~tdof20.scoring.scoring.Evaluation`, pooled over
     its targets, to store in a score dict under "curves": {"add_s": {"x": % of the diameter 0-100,
     "y": accuracy}, "proj2d": {"x": px 0-20, "y": ...}} (those computed)."""
-    from tdof20.scoring.report import accuracy_curve
-    from tdof20.scoring.scoring import PROJ_PLOT_MAX
-
     objs = list(ev.objects.values())
     out = {}
     if "add_s" in ev.keys and objs:
@@ -605,12 +372,10 @@ def plot_accuracy(entries: Sequence[Entry], path: str | Path,
     """One method's accuracy plot (PNG, matplotlib Agg): ADD(S) accuracy against the threshold (% of
     the diameter) and 2D projection against px, one line per protocol, where the score dicts hold
     "curves"; otherwise bars per object (ADD(S) and 2D projection, one bar per protocol)."""
-    import matplotlib
+    import matplotlib  # the Agg backend is chosen before pyplot loads
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from tdof20.formats.io import atomic_write_bytes
 
     if not entries:
         raise TdofError("nothing to plot")
@@ -678,7 +443,7 @@ def choices_markdown(rows: Sequence[Mapping]) -> str:
 
 
 def choices_csv(rows: Sequence[Mapping]) -> str:
-    return _csv([["result", "choice", "chosen", "validation"]]
+    return csv_text([["result", "choice", "chosen", "validation"]]
                  + [[r["result"], r["choice"], r["chosen"], r["validation"]] for r in rows])
 
 
@@ -692,7 +457,6 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
     agreement.csv, choices.csv (with ``choices``: what was chosen on validation, rendered after
     the header) and plots/accuracy_<label>.png per method (atomic writes). Tables without any
     input are left out (a note says so). Returns {name: path}."""
-    from tdof20.formats.io import atomic_write_bytes, write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""BOP scenes and object-model info, exactly as the BOP toolkit documents them.
+"""BOP scenes, exactly as the BOP toolkit documents them (object models: :mod:`tdof20.formats.bop_models`).
 
 A scene folder (``docs/bop_datasets_format.md`` of https://github.com/thodan/bop_toolkit)::
 
@@ -16,33 +16,30 @@ Rotations row-major, translations and depth in millimetres (depth image x depth_
 from __future__ import annotations
 
 import copy
-import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
+import cv2
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import atomic_write_bytes, dumps_json, png_header, read_bytes, read_json, read_png, write_png
+from tdof20.formats.bop_json import (bop_json_line, by_image_id, check_nums, check_rotation, dumps_bop_json, flat,
+                                     is_int, is_num, join_bop_json, write_bop_text)
+from tdof20.formats.bop_models import (MODELS_INFO, model_path, read_model_mesh, read_models_info, write_model_mesh,
+                                       write_models_info)
+from tdof20.formats.io import png_header, read_bytes, read_json, read_png, write_png
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"
 SCENE_GT_INFO = "scene_gt_info.json"
-MODELS_INFO = "models_info.json"
 EMPTY_BBOX = [-1, -1, -1, -1]
 _RESERVED_DIRS = ("rgb", "depth", "mask", "mask_visib")
-_ROT_TOL = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------
 # small helpers
 # ---------------------------------------------------------------------------------------------
-def _flat(a: Any) -> list[float]:
-    return [float(x) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
-
-
 def pose_to_bop(R: np.ndarray, t: np.ndarray, obj_id: int | None = None) -> dict:
     """(R (3,3), t (3,) mm) -> {"cam_R_m2c": 9 floats row-major, "cam_t_m2c": 3 floats}
     (with "obj_id" first when given)."""
@@ -51,8 +48,8 @@ def pose_to_bop(R: np.ndarray, t: np.ndarray, obj_id: int | None = None) -> dict
     if R.shape != (3, 3) or t.size != 3:
         raise ValueError(f"pose_to_bop needs R (3,3) and t (3,), got {R.shape} and {t.shape}")
     d = {} if obj_id is None else {"obj_id": int(obj_id)}
-    d["cam_R_m2c"] = _flat(R)
-    d["cam_t_m2c"] = _flat(t)
+    d["cam_R_m2c"] = flat(R)
+    d["cam_t_m2c"] = flat(t)
     return d
 
 
@@ -116,63 +113,13 @@ def gt_info_from_masks(mask_full: np.ndarray, mask_visib: np.ndarray, depth: np.
     }
 
 
-def dumps_bop_json(content: dict) -> str:
-    """BOP toolkit layout: one line per top-level key (sorted numerically), compact values."""
-    keys = sorted(content, key=lambda k: (0, int(k)) if str(k).lstrip("-").isdigit() else (1, str(k)))
-    lines = [f"  {json.dumps(str(k))}: {dumps_json(content[k], indent=None)}" for k in keys]
-    return "{\n" + ",\n".join(lines) + ("\n" if lines else "") + "}\n"
-
-
-def _write_bop_json(path: Path, content: dict) -> None:
-    atomic_write_bytes(path, dumps_bop_json(content).encode(), fsync=True)
-
-
 # ---------------------------------------------------------------------------------------------
 # validation (one-line TdofError naming the file)
 # ---------------------------------------------------------------------------------------------
-def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _nums(path: Path, v: Any, n: int, where: str) -> np.ndarray:
-    if not isinstance(v, list) or len(v) != n:
-        got = len(v) if isinstance(v, list) else type(v).__name__
-        raise TdofError(f"{where} must be {n} numbers, got {got}", path)
-    if not all(_is_num(x) for x in v):
-        raise TdofError(f"{where} must hold finite numbers only", path)
-    return np.asarray(v, dtype=np.float64)
-
-
-def _rot(path: Path, v: Any, where: str) -> np.ndarray:
-    R = _nums(path, v, 9, where).reshape(3, 3)
-    err = float(np.max(np.abs(R @ R.T - np.eye(3))))
-    if err > _ROT_TOL or np.linalg.det(R) < 0:
-        raise TdofError(f"{where} is not a rotation matrix (|R R^T - I| = {err:.2g}, det {np.linalg.det(R):.3g})", path)
-    return R
-
-
-def _top(path: Path, data: Any) -> dict[int, Any]:
-    if not isinstance(data, dict):
-        raise TdofError(f"must hold a JSON object keyed by image id, got {type(data).__name__}", path)
-    out = {}
-    for k, v in data.items():
-        try:
-            i = int(k)
-        except ValueError:
-            raise TdofError(f"key {k!r} is not an integer id", path) from None
-        if i < 0 or str(i) != str(k).strip():
-            raise TdofError(f"key {k!r} is not a non-negative integer id", path)
-        out[i] = v
-    return out
-
 
 def _parse_camera(path: Path, data: Any) -> dict[int, dict]:
     out = {}
-    for im_id, e in _top(path, data).items():
+    for im_id, e in by_image_id(path, data).items():
         w = f"image {im_id}"
         if not isinstance(e, dict):
             raise TdofError(f"{w}: entry must be an object, got {type(e).__name__}", path)
@@ -181,26 +128,26 @@ def _parse_camera(path: Path, data: Any) -> dict[int, dict]:
         if "depth_scale" not in e:
             raise TdofError(f"{w}: missing field 'depth_scale'", path)
         cam = copy.deepcopy(e)
-        K = _nums(path, e["cam_K"], 9, f"{w}: cam_K").reshape(3, 3)
+        K = check_nums(path, e["cam_K"], 9, f"{w}: cam_K").reshape(3, 3)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or np.any(K[2] != [0, 0, 1]):
             raise TdofError(f"{w}: cam_K is not an intrinsic matrix (fx, fy > 0, last row 0 0 1)", path)
         cam["cam_K"] = K
         ds = e["depth_scale"]
-        if not _is_num(ds) or ds <= 0:
+        if not is_num(ds) or ds <= 0:
             raise TdofError(f"{w}: depth_scale must be a number > 0, got {ds!r}", path)
         cam["depth_scale"] = float(ds)
         if ("cam_R_w2c" in e) != ("cam_t_w2c" in e):
             raise TdofError(f"{w}: cam_R_w2c and cam_t_w2c must be given together", path)
         if "cam_R_w2c" in e:
-            cam["cam_R_w2c"] = _rot(path, e["cam_R_w2c"], f"{w}: cam_R_w2c")
-            cam["cam_t_w2c"] = _nums(path, e["cam_t_w2c"], 3, f"{w}: cam_t_w2c")
+            cam["cam_R_w2c"] = check_rotation(path, e["cam_R_w2c"], f"{w}: cam_R_w2c")
+            cam["cam_t_w2c"] = check_nums(path, e["cam_t_w2c"], 3, f"{w}: cam_t_w2c")
         out[im_id] = cam
     return out
 
 
 def _parse_gt(path: Path, data: Any) -> dict[int, list[dict]]:
     out = {}
-    for im_id, lst in _top(path, data).items():
+    for im_id, lst in by_image_id(path, data).items():
         if not isinstance(lst, list):
             raise TdofError(f"image {im_id}: must be a list of instances, got {type(lst).__name__}", path)
         items = []
@@ -211,11 +158,11 @@ def _parse_gt(path: Path, data: Any) -> dict[int, list[dict]]:
             for k in ("obj_id", "cam_R_m2c", "cam_t_m2c"):
                 if k not in e:
                     raise TdofError(f"{w}: missing field '{k}'", path)
-            if not _is_int(e["obj_id"]) or e["obj_id"] < 1:
+            if not is_int(e["obj_id"]) or e["obj_id"] < 1:
                 raise TdofError(f"{w}: obj_id must be an integer >= 1, got {e['obj_id']!r}", path)
             g = copy.deepcopy(e)
-            g["cam_R_m2c"] = _rot(path, e["cam_R_m2c"], f"{w}: cam_R_m2c")
-            g["cam_t_m2c"] = _nums(path, e["cam_t_m2c"], 3, f"{w}: cam_t_m2c")
+            g["cam_R_m2c"] = check_rotation(path, e["cam_R_m2c"], f"{w}: cam_R_m2c")
+            g["cam_t_m2c"] = check_nums(path, e["cam_t_m2c"], 3, f"{w}: cam_t_m2c")
             items.append(g)
         out[im_id] = items
     return out
@@ -226,7 +173,7 @@ _GT_INFO_INT = ("px_count_all", "px_count_valid", "px_count_visib")
 
 def _parse_gt_info(path: Path, data: Any) -> dict[int, list[dict]]:
     out = {}
-    for im_id, lst in _top(path, data).items():
+    for im_id, lst in by_image_id(path, data).items():
         if not isinstance(lst, list):
             raise TdofError(f"image {im_id}: must be a list of instances, got {type(lst).__name__}", path)
         for gt_id, e in enumerate(lst):
@@ -234,12 +181,12 @@ def _parse_gt_info(path: Path, data: Any) -> dict[int, list[dict]]:
             if not isinstance(e, dict):
                 raise TdofError(f"{w}: must be an object, got {type(e).__name__}", path)
             for k in ("bbox_obj", "bbox_visib"):
-                if k in e and (not isinstance(e[k], list) or len(e[k]) != 4 or not all(_is_num(x) for x in e[k])):
+                if k in e and (not isinstance(e[k], list) or len(e[k]) != 4 or not all(is_num(x) for x in e[k])):
                     raise TdofError(f"{w}: {k} must be 4 numbers [x, y, w, h], got {e[k]!r}", path)
             for k in _GT_INFO_INT:
-                if k in e and (not _is_int(e[k]) or e[k] < 0):
+                if k in e and (not is_int(e[k]) or e[k] < 0):
                     raise TdofError(f"{w}: {k} must be an integer >= 0, got {e[k]!r}", path)
-            if "visib_fract" in e and (not _is_num(e["visib_fract"]) or not 0 <= e["visib_fract"] <= 1):
+            if "visib_fract" in e and (not is_num(e["visib_fract"]) or not 0 <= e["visib_fract"] <= 1):
                 raise TdofError(f"{w}: visib_fract must be a number in 0..1, got {e['visib_fract']!r}", path)
         out[im_id] = copy.deepcopy(lst)
     return out
@@ -277,8 +224,6 @@ def read_colour(path: str | Path) -> np.ndarray:
     p = Path(path)
     if p.suffix.lower() == ".png":
         return read_png(p, kind="rgb")
-    import cv2
-
     data = np.frombuffer(read_bytes(p, "colour image"), np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if img is None:
@@ -357,6 +302,13 @@ def read_scene(scene_dir: str | Path, require_gt: bool = True) -> BopScene:
     gt_info: dict[int, list[dict]] = {}
     if (d / SCENE_GT_INFO).exists():
         gt_info = _parse_gt_info(d / SCENE_GT_INFO, read_json(d / SCENE_GT_INFO))
+    _check_across(d, camera, gt, gt_info)
+    return BopScene(d, camera, gt, gt_info)
+
+
+def _check_across(d: Path, camera: dict[int, Any], gt: dict[int, list], gt_info: dict[int, list]) -> None:
+    """The three files of scene ``d`` agree: every image with ground truth has a camera entry, and
+    gt_info lists as many instances as scene_gt."""
     for im_id in gt:
         if im_id not in camera:
             raise TdofError(f"image {im_id} has ground truth but no camera entry in {SCENE_CAMERA}", d / SCENE_GT)
@@ -364,7 +316,6 @@ def read_scene(scene_dir: str | Path, require_gt: bool = True) -> BopScene:
         if im_id in gt and len(lst) != len(gt[im_id]):
             raise TdofError(f"image {im_id} lists {len(lst)} instances, {SCENE_GT} lists {len(gt[im_id])}",
                             d / SCENE_GT_INFO)
-    return BopScene(d, camera, gt, gt_info)
 
 
 def check_scene_images(scene: BopScene, depth_dirs: Iterable[str] = ("depth_opaque", "depth_restored")) -> tuple[int, int]:
@@ -413,11 +364,33 @@ def check_scene_images(scene: BopScene, depth_dirs: Iterable[str] = ("depth_opaq
 # ---------------------------------------------------------------------------------------------
 # writing a scene
 # ---------------------------------------------------------------------------------------------
+_SCENE_FILES = ((SCENE_CAMERA, _parse_camera), (SCENE_GT, _parse_gt), (SCENE_GT_INFO, _parse_gt_info))
+# the order flush writes them: scene_camera.json, the file that lists the images, last
+_FLUSH_ORDER = (SCENE_GT_INFO, SCENE_GT, SCENE_CAMERA)
+
+
+def drop_stale_masks(scene_dir: str | Path, im_id: int, n_instances: int) -> None:
+    """Remove the masks of instances ``gt_id >= n_instances`` of image ``im_id`` (left by an
+    earlier write of the frame with more instances)."""
+    for sub in ("mask", "mask_visib"):
+        gt_id = n_instances
+        while (p := Path(scene_dir) / sub / _mask_name(im_id, gt_id)).exists():
+            p.unlink()
+            gt_id += 1
+
+
 class BopSceneWriter:
-    """Write a BOP scene frame by frame. Images are written (atomically) by :meth:`add_frame`;
-    the three JSON files by :meth:`flush` (atomically, merged with what is already on disk, so a
-    resumed writer keeps earlier frames; this writer's entries win). Use as a context manager to
-    flush on exit. Flushing re-reads the JSON files: flush every few hundred frames, not each one.
+    """Write a BOP scene frame by frame, resumably: the one writer of scene folders.
+
+    Opening a writer reads the entries of the three JSON files already in the folder (a malformed
+    scene is refused: TdofError naming the file), so a resumed writer keeps the earlier frames.
+    A frame is added by :meth:`add_frame` (which also writes its images, atomically) or, when its
+    images were written elsewhere (e.g. by worker processes), by :meth:`put` with its entries;
+    :meth:`drop` removes a frame's entries. :attr:`camera`, :attr:`gt` and :attr:`gt_info` hold
+    every entry {im_id: JSON value}, earlier and new. :meth:`flush` rewrites the three files whole
+    and atomically when something changed (each entry is serialised once, when added, so a flush
+    costs a join and a write; flush every few seconds or hundred frames, not after each one). Use
+    as a context manager to flush on exit. One writer per scene folder at a time.
     """
 
     def __init__(self, scene_dir: str | Path, png_compression: int = 1):
@@ -426,6 +399,45 @@ class BopSceneWriter:
         self.camera: dict[int, dict] = {}
         self.gt: dict[int, list[dict]] = {}
         self.gt_info: dict[int, list[dict]] = {}
+        self._entries = {SCENE_CAMERA: self.camera, SCENE_GT: self.gt, SCENE_GT_INFO: self.gt_info}
+        self._lines: dict[str, dict[int, str]] = {name: {} for name in self._entries}
+        self._dirty = False
+        parsed: dict[str, dict] = {}
+        for name, parse in _SCENE_FILES:
+            p = self.path / name
+            if not p.exists():
+                continue
+            raw = read_json(p)
+            parsed[name] = parse(p, raw)  # refuse to merge into a malformed file
+            for im_id, v in by_image_id(p, raw).items():
+                self._entries[name][im_id] = v
+                self._lines[name][im_id] = bop_json_line(im_id, v)
+        if SCENE_CAMERA in parsed:
+            _check_across(self.path, parsed[SCENE_CAMERA], parsed.get(SCENE_GT, {}), parsed.get(SCENE_GT_INFO, {}))
+
+    def has(self, im_id: int) -> bool:
+        """Whether image ``im_id`` has an entry in each of the three files."""
+        return all(im_id in e for e in self._entries.values())
+
+    def has_any(self, im_id: int) -> bool:
+        """Whether image ``im_id`` has an entry in any of the three files."""
+        return any(im_id in e for e in self._entries.values())
+
+    def put(self, im_id: int, camera: dict, gt: list[dict], gt_info: list[dict]) -> None:
+        """Set the entries of image ``im_id`` (replacing any): its scene_camera entry, and its
+        scene_gt and scene_gt_info lists (one item per instance, gt_id = index), all JSON values."""
+        im_id = int(im_id)
+        for name, v in zip(self._entries, (camera, gt, gt_info)):
+            self._entries[name][im_id] = v
+            self._lines[name][im_id] = bop_json_line(im_id, v)
+        self._dirty = True
+
+    def drop(self, im_id: int) -> None:
+        """Remove the entries of image ``im_id`` (its files stay: the caller removes them)."""
+        for name, entries in self._entries.items():
+            if entries.pop(im_id, None) is not None:
+                self._lines[name].pop(im_id, None)
+                self._dirty = True
 
     def add_frame(self, im_id: int, cam_K: np.ndarray, depth_scale: float,
                   poses: Iterable[tuple[int, np.ndarray, np.ndarray]],
@@ -471,11 +483,11 @@ class BopSceneWriter:
         for gt_id, ((obj_id, R, t), mf, mv) in enumerate(zip(poses, masks_full, masks_visib)):
             gt_list.append(pose_to_bop(R, t, obj_id=int(obj_id)))
             info_list.append(gt_info_from_masks(mf, mv, depth))
-        cam = {"cam_K": _flat(K), "depth_scale": float(depth_scale)}
+        cam = {"cam_K": flat(K), "depth_scale": float(depth_scale)}
         if T_w2c is not None:
             T = np.asarray(T_w2c, dtype=np.float64).reshape(4, 4)
-            cam["cam_R_w2c"] = _flat(T[:3, :3])
-            cam["cam_t_w2c"] = _flat(T[:3, 3])
+            cam["cam_R_w2c"] = flat(T[:3, :3])
+            cam["cam_t_w2c"] = flat(T[:3, 3])
 
         c = self.png_compression
         if rgb is not None:
@@ -485,36 +497,25 @@ class BopSceneWriter:
         for gt_id, (mf, mv) in enumerate(zip(masks_full, masks_visib)):
             write_png(self.path / "mask" / _mask_name(im_id, gt_id), mf.astype(np.uint8) * 255, c)
             write_png(self.path / "mask_visib" / _mask_name(im_id, gt_id), mv.astype(np.uint8) * 255, c)
-        for sub in ("mask", "mask_visib"):  # a re-written frame with fewer instances: drop stale masks
-            gt_id = len(poses)
-            while (p := self.path / sub / _mask_name(im_id, gt_id)).exists():
-                p.unlink()
-                gt_id += 1
+        drop_stale_masks(self.path, im_id, len(poses))  # a re-written frame with fewer instances
         for name, img in (extra or {}).items():
             a = np.asarray(img)
             if a.dtype == bool:
                 a = a.astype(np.uint8) * 255
             write_png(self.path / name / _im(im_id), a, c)
 
-        self.camera[im_id] = cam
-        self.gt[im_id] = gt_list
-        self.gt_info[im_id] = info_list
+        self.put(im_id, cam, gt_list, info_list)
         return info_list
 
     def flush(self) -> None:
-        """Write scene_camera.json, scene_gt.json, scene_gt_info.json atomically, merged with the
-        entries already on disk (this writer's entries replace those of the same im_id)."""
-        self.path.mkdir(parents=True, exist_ok=True)
-        for name, mine, parse in ((SCENE_CAMERA, self.camera, _parse_camera), (SCENE_GT, self.gt, _parse_gt),
-                                  (SCENE_GT_INFO, self.gt_info, _parse_gt_info)):
-            p = self.path / name
-            merged: dict[int, Any] = {}
-            if p.exists():
-                raw = read_json(p)
-                parse(p, raw)  # refuse to merge into a malformed file
-                merged = _top(p, raw)
-            merged.update(mine)
-            _write_bop_json(p, {str(k): merged[k] for k in sorted(merged)})
+        """Write scene_camera.json, scene_gt.json and scene_gt_info.json whole, atomically and
+        synced, when an entry changed since the last flush (scene_camera.json last)."""
+        if not self._dirty:
+            return
+        for name in _FLUSH_ORDER:
+            lines = self._lines[name]
+            write_bop_text(self.path / name, join_bop_json([lines[k] for k in sorted(lines)]))
+        self._dirty = False
 
     def __enter__(self) -> "BopSceneWriter":
         return self
@@ -524,78 +525,7 @@ class BopSceneWriter:
 
 
 # ---------------------------------------------------------------------------------------------
-# models_info.json
-# ---------------------------------------------------------------------------------------------
-_MODEL_NUM = ("min_x", "min_y", "min_z", "size_x", "size_y", "size_z")
-
-
-def _check_model_entry(path: Path, obj_id: int, e: Any) -> None:
-    w = f"object {obj_id}"
-    if not isinstance(e, dict):
-        raise TdofError(f"{w}: entry must be an object, got {type(e).__name__}", path)
-    if "diameter" not in e:
-        raise TdofError(f"{w}: missing field 'diameter'", path)
-    if not _is_num(e["diameter"]) or e["diameter"] <= 0:
-        raise TdofError(f"{w}: diameter must be a number > 0 (mm), got {e['diameter']!r}", path)
-    for k in _MODEL_NUM:
-        if k in e and not _is_num(e[k]):
-            raise TdofError(f"{w}: {k} must be a finite number, got {e[k]!r}", path)
-        if k.startswith("size") and k in e and e[k] < 0:
-            raise TdofError(f"{w}: {k} must be >= 0, got {e[k]!r}", path)
-    sd = e.get("symmetries_discrete", [])
-    if not isinstance(sd, list):
-        raise TdofError(f"{w}: symmetries_discrete must be a list of 16-number transforms", path)
-    for i, s in enumerate(sd):
-        T = _nums(path, s, 16, f"{w}: symmetries_discrete[{i}]").reshape(4, 4)
-        _rot(path, _flat(T[:3, :3]), f"{w}: symmetries_discrete[{i}] rotation")
-    sc = e.get("symmetries_continuous", [])
-    if not isinstance(sc, list):
-        raise TdofError(f"{w}: symmetries_continuous must be a list of {{axis, offset}}", path)
-    for i, s in enumerate(sc):
-        if not isinstance(s, dict) or "axis" not in s or "offset" not in s:
-            raise TdofError(f"{w}: symmetries_continuous[{i}] must be an object with 'axis' and 'offset'", path)
-        if np.linalg.norm(_nums(path, s["axis"], 3, f"{w}: symmetries_continuous[{i}].axis")) == 0:
-            raise TdofError(f"{w}: symmetries_continuous[{i}].axis has zero length", path)
-        _nums(path, s["offset"], 3, f"{w}: symmetries_continuous[{i}].offset")
-
-
-def _models_info_path(path: str | Path) -> Path:
-    p = Path(path)
-    return p if p.suffix == ".json" else p / MODELS_INFO
-
-
-def write_models_info(dir: str | Path, infos: dict[int, dict]) -> Path:
-    """Validate and write ``<dir>/models_info.json`` ({"<obj_id>": {"diameter": mm, "min_x", ...,
-    "size_z", optional "symmetries_discrete", "symmetries_continuous"}}) atomically."""
-    path = _models_info_path(dir)
-    content = {}
-    for obj_id, e in infos.items():
-        e = json.loads(dumps_json(e, indent=None))
-        _check_model_entry(path, int(obj_id), e)
-        content[str(int(obj_id))] = e
-    _write_bop_json(path, content)
-    return path
-
-
-def read_models_info(path: str | Path) -> dict[int, dict]:
-    """Read ``models_info.json`` (give the models folder or the file) -> {obj_id: entry}."""
-    p = _models_info_path(path)
-    data = read_json(p)
-    if not isinstance(data, dict):
-        raise TdofError(f"must hold a JSON object keyed by object id, got {type(data).__name__}", p)
-    out = {}
-    for k, e in data.items():
-        try:
-            obj_id = int(k)
-        except ValueError:
-            raise TdofError(f"key {k!r} is not an integer object id", p) from None
-        _check_model_entry(p, obj_id, e)
-        out[obj_id] = e
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# model meshes (obj_{id:06d}.ply)
+# poses in metres
 # ---------------------------------------------------------------------------------------------
 #: poses whose median |t| is under this (mm) were written in metres: nothing is posed 1 cm from
 #: the camera (dataset build and the training shards refuse them)
@@ -612,56 +542,10 @@ def median_distance_if_metres(t: np.ndarray) -> float | None:
     return med if med < METRES_BELOW_MM else None
 
 
-def model_path(models_dir: str | Path, obj_id: int) -> Path:
-    """``<models_dir>/obj_{obj_id:06d}.ply``."""
-    return Path(models_dir) / f"obj_{int(obj_id):06d}.ply"
-
-
-def read_model_mesh(path: str | Path, need_faces: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Read a model (PLY/OBJ/STL, mm) -> vertices (V,3) float64, faces (F,3) int64. One reader
-    for every stage; a missing, unreadable, empty or non-finite model raises TdofError naming the
-    file (``need_faces=False`` accepts a point cloud: faces then has shape (0,3))."""
-    import io
-
-    import trimesh
-    from trimesh.resolvers import FilePathResolver
-
-    p = Path(path)
-    data = read_bytes(p, "model file")
-    try:
-        geom = trimesh.load(io.BytesIO(data), file_type=p.suffix.lstrip(".").lower() or None, process=False,
-                            resolver=FilePathResolver(str(p)))
-    except Exception as e:  # trimesh raises many types on bad files
-        raise TdofError(f"cannot read the model ({type(e).__name__}: {e})", p) from None
-    if isinstance(geom, trimesh.Scene):
-        geom = geom.to_geometry() if len(geom.geometry) else None
-    V = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    F = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    if len(V) == 0:
-        raise TdofError("the model has no vertices", p)
-    if not np.isfinite(V).all():
-        raise TdofError("the model has NaN or inf vertices", p)
-    if need_faces and len(F) == 0:
-        raise TdofError("the model has no faces (a triangle mesh is needed)", p)
-    if len(F) and (F.min() < 0 or F.max() >= len(V)):
-        raise TdofError("the model's faces index vertices that do not exist", p)
-    return V, F
-
-
-def write_model_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """Write a model atomically as binary little-endian PLY with vertex normals (mm), the form
-    the BOP toolkit and trimesh read."""
-    import trimesh
-
-    tm = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=False)
-    p = Path(path)
-    atomic_write_bytes(p, trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True))
-    return p
-
-
 __all__ = [
-    "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "MODELS_INFO", "EMPTY_BBOX", "BopScene",
-    "BopSceneWriter", "read_scene", "check_scene_images", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop",
-    "pose_from_bop", "write_models_info", "read_models_info", "dumps_bop_json", "model_path",
-    "read_model_mesh", "write_model_mesh", "colour_path", "read_colour", "COLOUR_SUFFIXES",
+    "SCENE_CAMERA", "SCENE_GT", "SCENE_GT_INFO", "EMPTY_BBOX", "BopScene", "BopSceneWriter", "read_scene",
+    "check_scene_images", "gt_info_from_masks", "bbox_from_mask", "pose_to_bop", "pose_from_bop", "drop_stale_masks",
+    "dumps_bop_json", "colour_path", "read_colour", "COLOUR_SUFFIXES", "METRES_BELOW_MM", "median_distance_if_metres",
+    # object models, from tdof20.formats.bop_models (kept importable from here)
+    "MODELS_INFO", "write_models_info", "read_models_info", "model_path", "read_model_mesh", "write_model_mesh",
 ]

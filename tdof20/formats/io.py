@@ -13,6 +13,7 @@ import os
 import re
 import struct
 import tempfile
+import tomllib
 import zlib
 from pathlib import Path
 from typing import Any
@@ -137,8 +138,6 @@ def read_json(path: str | Path, what: str = "file") -> Any:
 
 def read_toml(path: str | Path, what: str = "config file") -> dict:
     """A TOML file as a dict; a missing, unreadable or malformed file is one TdofError naming it."""
-    import tomllib
-
     path = Path(path)
     text = read_text(path, what)
     try:

@@ -9,11 +9,10 @@ A session is a folder::
     {phase}/arm{a}/depth/{k:06d}.png          uint16, ``depth_scale`` mm per unit, 0 = no depth
     truth/                                    simulated sessions only: a BOP scene (evaluation only)
 
-The journal is the truth: a frame exists once its line is in the journal. Frames are written
-first (atomically), then their journal line is appended and fsync'ed, so an interrupted capture
-resumes from the journal and never trusts a half-written image. A journal line torn by a crash
-is decided by one rule (:func:`_torn_tail`) that the reader and the appender share. See
-``docs/formats.md``.
+The journal is the truth: a frame exists once its line is in the journal
+(:mod:`tdof20.formats.journal`: its entries, the torn-line rule). This module holds
+``session.json``, writing a frame and :class:`RawSession`, the checked reader of the whole
+folder; the strict field checks are :mod:`tdof20.formats.checks`. See ``docs/formats.md``.
 
 Every problem in a session found while reading is a one-line :class:`TdofError` naming the file;
 reading never modifies anything on disk.
@@ -22,29 +21,27 @@ reading never modifies anything on disk.
 from __future__ import annotations
 
 import copy
-import hashlib
-import io
 import json
 import math
-import os
 import re
 import time
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from tdof20.errors import TdofError
+from tdof20.formats.checks import Checker, json_type
 from tdof20.formats.io import decode_png, dumps_json, read_json, sha256_bytes, write_json, write_png
+from tdof20.formats.journal import (JOURNAL_FILE, PHASES, FrameKey, JournalEntry, append_journal, frame_paths,
+                                    read_journal)
 from tdof20.geometry.camera import PinholeCamera
 
 FORMAT = "tdof20-raw-session"
 VERSION = 1
 SESSION_FILE = "session.json"
-JOURNAL_FILE = "journal.jsonl"
 TRUTH_DIR = "truth"
-PHASES = ("transparent", "opaque")
 N_JOINTS = 6
 #: the most turntable steps per arm position a session may have (0.01 deg steps; the paper's 400 are
 #: 0.9 deg): a bound that keeps a typo (1e30 steps) from planning frames until memory runs out
@@ -53,7 +50,6 @@ TURN_DIRECTIONS = ("ccw", "cw")  # turntable.direction: counter-clockwise (defau
 # single/<class name> (single/NN, NN = the object id 01..20, is an alias) or multi/00..multi/19
 SCENE_ID_RE = re.compile(r"^(single/([a-z][a-z0-9_]*|0[1-9]|1[0-9]|20)|multi/[01][0-9])$")
 OBJ_ID_RANGE = (1, 20)
-RIGID_TOL = 1e-4
 METRES_THRESHOLD_MM = 5.0  # a T_base_tcp translation shorter than this looks like metres
 # a hand-eye translation shorter than this (mm) but not zero looks like metres: a camera on the
 # flange sits tens of millimetres away, i.e. well under 1 when written in metres (the capture
@@ -63,129 +59,10 @@ HAND_EYE_METRES_MM = 1.0
 # means camera.depth_scale does not give millimetres
 DEPTH_PLAUSIBLE_MM = (100.0, 5000.0)
 
-FrameKey = tuple[str, int, int]  # (phase, arm, step)
-
 
 # ---------------------------------------------------------------------------------------------
-# strict validation helpers: every failure is one line naming the file and the field path
+# small helpers
 # ---------------------------------------------------------------------------------------------
-def _jtype(v: Any) -> str:
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "a boolean"
-    if isinstance(v, (int, float)):
-        return "a number"
-    if isinstance(v, str):
-        return "a string"
-    if isinstance(v, list):
-        return "a list"
-    if isinstance(v, dict):
-        return "an object"
-    return type(v).__name__
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-
-class _Checker:
-    """Raises :class:`TdofError` naming ``path`` (and, for the journal, the line)."""
-
-    def __init__(self, path: str | Path | None, prefix: str = ""):
-        self.path = path
-        self.prefix = prefix
-
-    def fail(self, msg: str) -> None:
-        raise TdofError(self.prefix + msg, self.path)
-
-    def obj(self, v: Any, where: str) -> dict:
-        if not isinstance(v, dict):
-            self.fail(f"{where} must be an object {{...}}, got {_jtype(v)}")
-        return v
-
-    def get(self, d: dict, key: str, where: str) -> Any:
-        if key not in d:
-            self.fail(f"missing field '{where + '.' if where else ''}{key}'")
-        return d[key]
-
-    def number(self, v: Any, where: str, gt: float | None = None) -> float:
-        if not _is_number(v):
-            self.fail(f"{where} must be a number, got {_jtype(v)}")
-        x = float(v)
-        if not math.isfinite(x):
-            self.fail(f"{where} must be finite, got {x}")
-        if gt is not None and not x > gt:
-            self.fail(f"{where} must be > {gt:g}, got {x:g}")
-        return x
-
-    def integer(self, v: Any, where: str, lo: int | None = None, hi: int | None = None) -> int:
-        if not _is_int(v):
-            got = repr(v) if isinstance(v, float) else _jtype(v)
-            self.fail(f"{where} must be an integer, got {got}")
-        i = int(v)
-        if (lo is not None and i < lo) or (hi is not None and i > hi):
-            rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-            self.fail(f"{where} must be {rng}, got {i}")
-        return i
-
-    def string(self, v: Any, where: str) -> str:
-        if not isinstance(v, str):
-            self.fail(f"{where} must be a string, got {_jtype(v)}")
-        return v
-
-    def numbers(self, v: Any, n: int, where: str, what: str = "numbers") -> np.ndarray:
-        if not isinstance(v, (list, tuple, np.ndarray)):
-            self.fail(f"{where} must be {n} {what}, got {_jtype(v)}")
-        if len(v) != n:
-            self.fail(f"{where} must be {n} {what}, got {len(v)}")
-        for i, x in enumerate(v):
-            if not _is_number(x):
-                self.fail(f"{where}[{i}] must be a number, got {_jtype(x)}")
-            if not math.isfinite(float(x)):
-                self.fail(f"{where}[{i}] must be finite, got {float(x)}")
-        return np.asarray(v, dtype=np.float64)
-
-    def rigid(self, v: Any, where: str, metres_below: float | None = None, zero_ok: bool = False) -> np.ndarray:
-        """A row-major 4x4 rigid transform in mm. ``metres_below``: a translation shorter than this
-        (mm) looks like metres and is refused; ``zero_ok`` lets an exactly zero translation pass."""
-        T = self.numbers(v, 16, where, "numbers (a row-major 4x4 rigid transform, mm)").reshape(4, 4)
-        if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
-            self.fail(f"{where} is not a rigid transform: last row must be 0 0 0 1, "
-                      f"got {' '.join(f'{x:g}' for x in T[3])}")
-        R = T[:3, :3]
-        err = float(np.max(np.abs(R @ R.T - np.eye(3))))
-        if err > RIGID_TOL:
-            self.fail(f"{where} is not a rigid transform: its rotation is not orthonormal "
-                      f"(|R R^T - I| = {err:.2g} > {RIGID_TOL:g})")
-        if np.linalg.det(R) < 0:
-            self.fail(f"{where} is not a rigid transform: its rotation is a reflection (det -1)")
-        if metres_below is not None:
-            norm = float(np.linalg.norm(T[:3, 3]))
-            if norm < metres_below and not (zero_ok and norm == 0.0):
-                self.fail(f"{where} translation has length {norm:.4g}: looks like metres, millimetres expected")
-        return T
-
-
-def _frame_check(phase: Any, arm: Any, step: Any) -> None:
-    if phase not in PHASES:
-        raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
-    if not _is_int(arm) or arm < 0:
-        raise ValueError(f"arm must be an integer >= 0, got {arm!r}")
-    if not _is_int(step) or step < 0:
-        raise ValueError(f"step must be an integer >= 0, got {step!r}")
-
-
-def frame_paths(phase: str, arm: int, step: int) -> tuple[str, str]:
-    """Relative POSIX paths (rgb, depth) of a frame inside a session folder."""
-    _frame_check(phase, arm, step)
-    return (f"{phase}/arm{int(arm)}/rgb/{int(step):06d}.png", f"{phase}/arm{int(arm)}/depth/{int(step):06d}.png")
-
-
 def _deep_merge(extra: Any, known: Any) -> Any:
     """``known`` over ``extra``: dicts merge key by key, equal-length lists item by item."""
     if isinstance(extra, dict) and isinstance(known, dict):
@@ -310,9 +187,9 @@ class SessionInfo:
     def from_dict(cls, d: Any, path: str | Path | None = SESSION_FILE) -> "SessionInfo":
         """Validate a parsed ``session.json`` strictly; any problem is a TdofError naming ``path``
         and the field."""
-        c = _Checker(path)
+        c = Checker(path)
         if not isinstance(d, dict):
-            c.fail(f"must hold a JSON object {{...}}, got {_jtype(d)}")
+            c.fail(f"must hold a JSON object {{...}}, got {json_type(d)}")
         fmt = c.get(d, "format", "")
         if fmt != FORMAT:
             c.fail(f"is not a tdof20 raw session: format must be '{FORMAT}', got {fmt!r}")
@@ -327,7 +204,7 @@ class SessionInfo:
 
         objects = c.get(d, "objects", "")
         if not isinstance(objects, list) or not objects:
-            c.fail(f"objects must be a non-empty list of objects, got {_jtype(objects) if not isinstance(objects, list) else 'an empty list'}")
+            c.fail(f"objects must be a non-empty list of objects, got {json_type(objects) if not isinstance(objects, list) else 'an empty list'}")
         for i, o in enumerate(objects):
             c.obj(o, f"objects[{i}]")
             c.integer(c.get(o, "obj_id", f"objects[{i}]"), f"objects[{i}].obj_id", *OBJ_ID_RANGE)
@@ -344,7 +221,7 @@ class SessionInfo:
 
         arms = c.get(d, "arm_positions", "")
         if not isinstance(arms, list) or not arms:
-            c.fail(f"arm_positions must be a non-empty list, got {_jtype(arms) if not isinstance(arms, list) else 'an empty list'}")
+            c.fail(f"arm_positions must be a non-empty list, got {json_type(arms) if not isinstance(arms, list) else 'an empty list'}")
         arm_positions, arm_extra = [], []
         for i, a in enumerate(arms):
             where = f"arm_positions[{i}]"
@@ -369,7 +246,7 @@ class SessionInfo:
 
         phases = d.get("phases", list(PHASES))
         if not isinstance(phases, list) or not phases:
-            c.fail(f"phases must be a non-empty list of {' / '.join(PHASES)}, got {_jtype(phases)}")
+            c.fail(f"phases must be a non-empty list of {' / '.join(PHASES)}, got {json_type(phases)}")
         for i, p in enumerate(phases):
             if p not in PHASES:
                 c.fail(f"phases[{i}] must be one of {', '.join(PHASES)}, got {p!r}")
@@ -396,7 +273,7 @@ class SessionInfo:
         return self.to_dict() == other.to_dict()
 
 
-def _check_K(c: _Checker, K: np.ndarray, width: int, height: int, where: str) -> None:
+def _check_K(c: Checker, K: np.ndarray, width: int, height: int, where: str) -> None:
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         c.fail(f"{where} focal lengths must be > 0 pixels, got fx={K[0, 0]:g} fy={K[1, 1]:g}")
     if np.any(K[2] != [0, 0, 1]) or K[1, 0] != 0:
@@ -434,211 +311,6 @@ def read_session(path: str | Path) -> SessionInfo:
     return SessionInfo.from_dict(read_json(f), f)
 
 
-# ---------------------------------------------------------------------------------------------
-# journal.jsonl
-# ---------------------------------------------------------------------------------------------
-_HEX64 = re.compile(r"^[0-9a-f]{64}$")
-_JOURNAL_KNOWN = ("phase", "arm", "step", "angle_deg", "rgb", "depth", "sha256", "t")
-
-
-@dataclass
-class JournalEntry:
-    """One captured frame: which it is, where its files are (relative POSIX paths), their sha256
-    checksums, and when it was captured (unix time). ``extra`` keeps any further keys."""
-
-    phase: str
-    arm: int
-    step: int
-    angle_deg: float
-    rgb: str
-    depth: str
-    sha256: dict
-    t: float
-    extra: dict = field(default_factory=dict)
-    line: int | None = field(default=None, compare=False, repr=False)  # journal line it came from
-
-    @property
-    def key(self) -> FrameKey:
-        return (self.phase, self.arm, self.step)
-
-    def to_dict(self) -> dict:
-        d = {"phase": self.phase, "arm": int(self.arm), "step": int(self.step),
-             "angle_deg": float(self.angle_deg), "rgb": self.rgb, "depth": self.depth,
-             "sha256": dict(self.sha256), "t": float(self.t)}
-        for k, v in self.extra.items():
-            if k not in d:
-                d[k] = v
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Any, path: str | Path | None = None, line: int | None = None) -> "JournalEntry":
-        c = _Checker(path, prefix=f"line {line}: " if line is not None else "")
-        if not isinstance(d, dict):
-            c.fail(f"a journal entry must be a JSON object {{...}}, got {_jtype(d)}")
-        phase = c.string(c.get(d, "phase", ""), "phase")
-        if phase not in PHASES:
-            c.fail(f"phase must be one of {', '.join(PHASES)}, got {phase!r}")
-        arm = c.integer(c.get(d, "arm", ""), "arm", lo=0)
-        step = c.integer(c.get(d, "step", ""), "step", lo=0)
-        angle = c.number(c.get(d, "angle_deg", ""), "angle_deg")
-        files = {}
-        for k in ("rgb", "depth"):
-            rel = c.string(c.get(d, k, ""), k)
-            pp = PurePosixPath(rel)
-            if not rel or pp.is_absolute() or ".." in pp.parts or "\\" in rel:
-                c.fail(f"{k} must be a relative POSIX path inside the session, got {rel!r}")
-            files[k] = rel
-        sha = c.obj(c.get(d, "sha256", ""), "sha256")
-        for k in ("rgb", "depth"):
-            h = c.string(c.get(sha, k, "sha256"), f"sha256.{k}")
-            if not _HEX64.match(h):
-                c.fail(f"sha256.{k} must be 64 lower-case hex digits, got {h[:80]!r}")
-        t = c.number(c.get(d, "t", ""), "t")
-        extra = {k: v for k, v in d.items() if k not in _JOURNAL_KNOWN}
-        return cls(phase, arm, step, angle, files["rgb"], files["depth"], dict(sha), t, extra, line)
-
-
-def _journal_file(path: str | Path) -> Path:
-    p = Path(path)
-    return p if p.suffix == ".jsonl" else p / JOURNAL_FILE
-
-
-def _parse_line(raw: bytes) -> Any:
-    return json.loads(raw.decode("utf-8"))
-
-
-def _torn_tail(f, size: int) -> int | None:
-    """Where the journal's torn last line starts (a byte offset), or None when it has none.
-
-    **The torn-line rule**, the one place it is decided: the last non-blank line of the journal is
-    *torn* when it is not valid JSON (a crash or power cut cut the append short), whether or not a
-    newline follows it. :func:`read_journal` leaves a torn line out and :func:`append_journal`
-    cuts it off (with any blank lines after it) before it appends, so the two always agree. A
-    malformed line anywhere else, or a last line that is valid JSON but not a valid entry, is no
-    tear: it is an error naming its line. ``f``: a binary file (or BytesIO) open for reading.
-    """
-    pos, tail = size, b""
-    while pos > 0:
-        n = min(4096, pos)
-        pos -= n
-        f.seek(pos)
-        tail = f.read(n) + tail
-        body = tail.rstrip()
-        i = body.rfind(b"\n")
-        if body and (i >= 0 or pos == 0):
-            try:
-                _parse_line(body[i + 1:])
-            except ValueError:  # json.JSONDecodeError and UnicodeDecodeError both are
-                return pos + i + 1
-            return None
-    return None
-
-
-def _count_lines(f, upto: int) -> int:
-    f.seek(0)
-    return f.read(upto).count(b"\n")
-
-
-_NOTICED_ENV = "TDOF20_JOURNAL_NOTICES"
-_noticed: set[str] = set()
-
-
-def _notice_torn(path: Path, lineno: int, text: str) -> None:
-    """Say once, on stderr, that line ``lineno`` of the journal ``path`` is torn: once per process
-    and file line however many readers open the journal, and not again in the worker processes
-    this process starts afterwards (they inherit the environment that records it)."""
-    key = hashlib.sha256(f"{os.path.realpath(path)}:{lineno}".encode()).hexdigest()[:16]
-    seen = set(os.environ.get(_NOTICED_ENV, "").split())
-    if key in _noticed or key in seen:
-        return
-    _noticed.add(key)
-    os.environ[_NOTICED_ENV] = " ".join(sorted(seen | {key}))
-    from tdof20.progress import console
-
-    console.print(f"warning: {path}: line {lineno} {text}", markup=False, highlight=False, soft_wrap=True)
-
-
-def append_journal(dir: str | Path, entry: JournalEntry) -> None:
-    """Append one entry to ``<dir>/journal.jsonl``, flushed and fsync'ed before returning.
-
-    A torn last line (see :func:`_torn_tail`: not valid JSON, with or without a newline after it)
-    is cut off first, so the new line starts on a line of its own; a valid last line missing its
-    newline is ended. Complete lines are never changed.
-    """
-    path = _journal_file(dir)
-    line = (dumps_json(entry.to_dict(), indent=None) + "\n").encode()
-    created = not path.exists()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+b") as f:
-        size = f.seek(0, os.SEEK_END)
-        cut = _torn_tail(f, size)
-        if cut is not None:
-            _notice_torn(path, _count_lines(f, cut) + 1,
-                         "is incomplete (an interrupted write): cut off before appending")
-            f.truncate(cut)
-        elif size > 0:
-            f.seek(size - 1)
-            if f.read(1) != b"\n":  # a valid last line whose newline the crash did not write
-                f.write(b"\n")
-        f.write(line)
-        f.flush()
-        os.fsync(f.fileno())
-    if created:
-        _fsync_dir(path.parent)
-
-
-def _fsync_dir(d: Path) -> None:
-    try:
-        fd = os.open(d, os.O_RDONLY)
-    except OSError:  # pragma: no cover - not supported on every OS
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
-def read_journal(dir: str | Path) -> list[JournalEntry]:
-    """All entries of ``<dir>/journal.jsonl`` in file order ([] if there is no journal).
-
-    A torn last line (see :func:`_torn_tail`) is left out, said once on stderr; a malformed line
-    anywhere else is a TdofError naming the file and the line number. Blank lines are skipped.
-    """
-    path = _journal_file(dir)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        return []
-    except (IsADirectoryError, PermissionError) as e:
-        raise TdofError(f"cannot read ({type(e).__name__})", path) from None
-    cut = _torn_tail(io.BytesIO(data), len(data))
-    if cut is not None:
-        _notice_torn(path, data.count(b"\n", 0, cut) + 1,
-                     "is incomplete (an interrupted write): ignored; resuming the capture takes "
-                     "its frame again and cuts the line off")
-        data = data[:cut]
-    out = []
-    for i, raw in enumerate(data.split(b"\n")):
-        if not raw.strip():
-            continue
-        try:
-            d = _parse_line(raw)
-        except ValueError as e:
-            msg = e.msg if isinstance(e, json.JSONDecodeError) else "not UTF-8 text"
-            raise TdofError(f"line {i + 1} is not valid JSON ({msg})", path) from None
-        out.append(JournalEntry.from_dict(d, path, i + 1))
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# stale temporary files
-# ---------------------------------------------------------------------------------------------
-# what tdof20.formats.io.atomic_write_bytes leaves behind when it is killed between creating its
-# temporary file and renaming it: tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp"), whose
-# random part is 8 characters of [a-z0-9_]
-# ---------------------------------------------------------------------------------------------
 # writing a frame
 # ---------------------------------------------------------------------------------------------
 def write_frame(dir: str | Path, info: SessionInfo, phase: str, arm: int, step: int, rgb: np.ndarray,

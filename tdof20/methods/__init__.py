@@ -16,7 +16,7 @@ import importlib
 _LAZY = {
     "kabsch_torch": "tdof20.methods.fitting",
     "HFF6DoF": "tdof20.methods.hff6dof", "count_macs": "tdof20.methods.hff6dof",
-    "count_parameters": "tdof20.methods.hff6dof", "fill_depth_holes": "tdof20.methods.hff6dof",
+    "count_parameters": "tdof20.methods.hff6dof", "fill_depth_holes": "tdof20.methods.data",
     "geometry_map": "tdof20.methods.hff6dof",
     "hff_loss": "tdof20.methods.losses",
     "ResNet34": "tdof20.methods.resnet", "load_torchvision_state_dict": "tdof20.methods.resnet",
@@ -24,6 +24,7 @@ _LAZY = {
     "vote_keypoints_list": "tdof20.methods.voting",
     "Method": "tdof20.methods.registry", "get_method": "tdof20.methods.registry",
     "method_names": "tdof20.methods.registry", "register": "tdof20.methods.registry",
+    "PoseMethod": "tdof20.methods.contract",
 }
 
 __all__ = sorted(_LAZY)

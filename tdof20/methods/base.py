@@ -1,15 +1,16 @@
 """What every method module is given about the dataset it works on: :class:`MethodMeta`.
 
-A method module (pvnet, densefusion, ffb6d, ...) exposes ``<Method>Config``, ``build(cfg, meta)``,
-``<Method>Transform``, ``loss(net, batch, cfg, meta)`` and ``predict_poses(net, batch, cfg, meta)``;
-``meta`` is the one object that tells it which objects exist, their keypoints, sizes, symmetries
-and surface samples, and the network input size::
+Every method's pieces (the contract, :class:`tdof20.methods.contract.PoseMethod`: ``build(cfg,
+meta)``, ``transform(cfg, meta, train)``, ``loss(net, batch, cfg, meta)``, ``predict_poses(net,
+batch, cfg, meta)``) are given a ``meta``: the one object that tells them which objects exist,
+their keypoints, sizes, symmetries and surface samples, and the network input size::
 
     meta = MethodMeta.from_catalog((1, 5, 12), image_size=(96, 128))
     c = meta.class_of(12)            # 3: class index of obj 12 (0 = background)
     meta.obj_of(c)                   # 12
 
-torch-free (numpy only), so it pickles into DataLoader workers and loads without a GPU stack.
+torch-free (numpy and the catalog), so it pickles into DataLoader workers and loads without a GPU
+stack.
 """
 
 from __future__ import annotations
@@ -20,10 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from tdof20.errors import TdofError
+from tdof20.objects import get_object
 
 #: surface samples per object that :meth:`MethodMeta.from_catalog` takes (DenseFusion's 500 model
 #: points for its ADD loss; FFB6D/PVN3D use the mesh vertices — enough for an ADD loss either way)
 DEFAULT_MODEL_POINTS = 500
+#: the smallest and largest image side a method takes (a typo such as 100000x100000 would try to
+#: allocate tens of GB before failing)
+IMAGE_SIDE = (8, 4096)
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,8 +151,6 @@ class MethodMeta:
                      n_model_points: int = DEFAULT_MODEL_POINTS, seed: int = 0) -> MethodMeta:
         """Meta of catalog objects (tdof20.objects): their keypoints, diameters, symmetries and
         ``n_model_points`` area-uniform surface samples (deterministic in ``seed``)."""
-        from tdof20.objects import get_object
-
         objs = {int(o): get_object(int(o)) for o in obj_ids}
         return cls(
             obj_ids=tuple(objs),

@@ -46,7 +46,10 @@ from torch import nn
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
+from tdof20.methods.contract import PoseMethod, forward_batch
 from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mode, resize_frame, resize_nearest
+from tdof20.methods.fitting import quaternion_to_matrix
+from tdof20.methods.pspnet import PSPNet
 from tdof20.methods.randla import knn
 
 STAGES = ("seg", "pose", "refine", "joint")
@@ -82,40 +85,6 @@ class DenseFusionConfig:
         check_depth_mode(self.depth_mode)
         if self.n_points < 1 or self.crop_size < 8:
             raise TdofError("DenseFusion needs n_points >= 1 and crop_size >= 8")
-
-
-# --------------------------------------------------------------------------------------------
-# rotations
-
-
-def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """(...,4) quaternions (w, x, y, z), normalised here -> (...,3,3) rotation matrices (the
-    original's ``base`` matrix, lib/loss.py)."""
-    q = F.normalize(q, dim=-1, eps=1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (w * y + x * z),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (w * x + y * z), 1 - 2 * (x * x + y * y)], dim=-1).view(*q.shape[:-1], 3, 3)
-
-
-def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
-    """(...,3,3) -> (...,4) unit quaternions (w >= 0), the numerically stable branch per element."""
-    m = R.to(torch.float64)
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    cands = torch.stack([
-        torch.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-        torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
-                     m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-        torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
-                     1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
-        torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1],
-                     1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1)], dim=-2)   # (...,4,4)
-    pick = torch.stack([tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1).argmax(-1)
-    q = torch.gather(cands, -2, pick[..., None, None].expand(*pick.shape, 1, 4))[..., 0, :]
-    q = F.normalize(q, dim=-1)
-    q = torch.where(q[..., :1] < 0, -q, q)
-    return q.to(R.dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -171,7 +140,6 @@ class PoseNet(nn.Module):
 
     def __init__(self, n_obj: int, backbone_weights: str = ""):
         super().__init__()
-        from tdof20.methods.pspnet import PSPNet
 
         self.n_obj = int(n_obj)
         self.cnn = PSPNet(backbone="resnet18", feat_dim=32)
@@ -236,7 +204,6 @@ class SegNet(nn.Module):
 
     def __init__(self, n_classes: int, backbone_weights: str = ""):
         super().__init__()
-        from tdof20.methods.pspnet import PSPNet
 
         self.net = PSPNet(backbone="resnet18", feat_dim=int(n_classes), log_softmax=False)
         if backbone_weights:
@@ -594,6 +561,31 @@ def example_batch(cfg: DenseFusionConfig, meta: MethodMeta, batch_size: int = 1)
             "cls": torch.ones(batch_size, dtype=torch.int64)}
 
 
-__all__ = ["DenseFusion", "DenseFusionConfig", "DenseFusionTransform", "PoseNet", "PoseRefineNet", "SegNet",
-           "best_pose", "build", "crop_box", "example_batch", "loss", "make_crop", "matrix_to_quaternion",
-           "point_distances", "predict_poses", "quaternion_to_matrix", "refine_pose"]
+class DenseFusionMethod(PoseMethod):
+    """DenseFusion's pieces (the functions of this module); the network takes the whole batch."""
+
+    config_class = DenseFusionConfig
+
+    def build(self, cfg: DenseFusionConfig, meta: MethodMeta) -> DenseFusion:
+        return build(cfg, meta)
+
+    def transform(self, cfg: DenseFusionConfig, meta: MethodMeta, train: bool = False) -> DenseFusionTransform:
+        return DenseFusionTransform(cfg, meta, train=train)
+
+    def loss(self, net: DenseFusion, batch: Mapping, cfg: DenseFusionConfig, meta: MethodMeta
+             ) -> tuple[torch.Tensor, dict]:
+        return loss(net, batch, cfg, meta)
+
+    def predict_poses(self, net: DenseFusion, batch: Mapping, cfg: DenseFusionConfig, meta: MethodMeta) -> list:
+        return predict_poses(net, batch, cfg, meta)
+
+    def forward(self, net: DenseFusion, batch: Mapping) -> dict:
+        return forward_batch(net, batch)
+
+    def example_batch(self, cfg: DenseFusionConfig, meta: MethodMeta, batch_size: int = 1) -> dict:
+        return example_batch(cfg, meta, batch_size)
+
+
+__all__ = ["DenseFusion", "DenseFusionConfig", "DenseFusionMethod", "DenseFusionTransform", "PoseNet", "PoseRefineNet",
+           "SegNet", "best_pose", "build", "crop_box", "example_batch", "loss", "make_crop", "point_distances",
+           "predict_poses", "refine_pose"]

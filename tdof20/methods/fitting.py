@@ -1,8 +1,10 @@
-"""Batched least-squares rigid fitting in torch (paper section 3.5: keypoints -> pose)."""
+"""Batched least-squares rigid fitting in torch (paper section 3.5: keypoints -> pose), and rotations
+as unit quaternions (DenseFusion's pose output)."""
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 
 def kabsch_torch(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = None
@@ -50,3 +52,33 @@ def kabsch_torch(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | N
     t = torch.where(ok[:, None], t, torch.full_like(t, float("nan")))
     R, t = R.to(out_dtype), t.to(out_dtype)
     return (R[0], t[0]) if single else (R, t)
+
+
+def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(...,4) quaternions (w, x, y, z), normalised here -> (...,3,3) rotation matrices (the
+    original's ``base`` matrix, lib/loss.py)."""
+    q = F.normalize(q, dim=-1, eps=1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (w * y + x * z),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (w * x + y * z), 1 - 2 * (x * x + y * y)], dim=-1).view(*q.shape[:-1], 3, 3)
+
+
+def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    """(...,3,3) -> (...,4) unit quaternions (w >= 0), the numerically stable branch per element."""
+    m = R.to(torch.float64)
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = torch.stack([
+        torch.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+        torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+                     m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+        torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
+                     1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
+        torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1],
+                     1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1)], dim=-2)   # (...,4,4)
+    pick = torch.stack([tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1).argmax(-1)
+    q = torch.gather(cands, -2, pick[..., None, None].expand(*pick.shape, 1, 4))[..., 0, :]
+    q = F.normalize(q, dim=-1)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q.to(R.dtype)

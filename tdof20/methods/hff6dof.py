@@ -277,21 +277,3 @@ def geometry_map(depth_mm: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     flip = (n * xyz).sum(dim=1, keepdim=True) > 0
     n = torch.where(flip, -n, n)
     return torch.cat([xyz, n], dim=1)
-
-
-def fill_depth_holes(depth_mm: torch.Tensor, iterations: int = 8, kernel: int = 5) -> torch.Tensor:
-    """Fill missing depth (0) by repeatedly averaging valid neighbours (``kernel`` x ``kernel``
-    window, ``iterations`` passes): (B,H,W) -> (B,H,W). Valid pixels are kept as they are; holes
-    wider than about iterations * kernel / 2 pixels stay 0. A cheap, differentiation-free option for
-    the glass pixels whose depth the sensor lost."""
-    squeeze = depth_mm.dim() == 2
-    d = (depth_mm[None] if squeeze else depth_mm).to(torch.float32)[:, None]
-    valid = (d > 0).to(d.dtype)
-    for _ in range(iterations):
-        s = F.avg_pool2d(d * valid, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
-        c = F.avg_pool2d(valid, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
-        fill = (valid == 0) & (c > 0)
-        d = torch.where(fill, s / c.clamp_min(1e-12), d)
-        valid = torch.maximum(valid, fill.to(d.dtype))
-    d = d[:, 0]
-    return d[0] if squeeze else d

@@ -1,17 +1,18 @@
-"""HFF6DoF behind the method interface (:mod:`tdof20.methods.registry`): its config, network,
-transform, loss and pose recovery as the five pieces every method has.
+"""HFF6DoF behind the method contract (:class:`~tdof20.methods.contract.PoseMethod`):
+:class:`HFF6DoFMethod`, with its config, network, transform, loss and pose recovery.
 
     m = get_method("hff6dof")
     cfg = HFF6DoFConfig(fuse_stages=3, seg_head=True, depth_mode="filled", voting="bearing")
     net = build(cfg, meta)                                   # HFF6DoF (tdof20.methods.hff6dof)
-    tf = HFF6DoFTransform(cfg, meta, train=True)             # wraps data.HFFTransform
+    tf = HFF6DoFTransform(cfg, meta, train=True)             # wraps hff6dof_data.HFFTransform
     total, parts = loss(net, collate([tf(i) for i in items]), cfg, meta)   # losses.hff_loss
-    rows = predict_poses(net, batch, cfg, meta)              # predict.recover_poses
+    rows = predict_poses(net, batch, cfg, meta)              # hff6dof_pose.recover_poses
 
-The pieces wrap the existing code (data.HFFTransform, losses.hff_loss, predict.recover_poses)
-without changing it. A run written before the interface (config.json {"method": "hff6dof",
-"network": {...}, "keypoints": ..., "image_size": ..., "depth_mode": ...}, with or without
-"classes") gives its (cfg, meta) through :func:`config_from_run`.
+The pieces wrap hff6dof_data.HFFTransform, losses.hff_loss and hff6dof_pose.recover_poses. A run
+records the network's options as its "network" table (:meth:`HFF6DoFMethod.run_record`); a run
+written before the interface (config.json {"method": "hff6dof", "network": {...}, "keypoints": ...,
+"image_size": ..., "depth_mode": ...}, with or without "classes") gives its (cfg, meta) through
+:func:`config_from_run`.
 """
 
 from __future__ import annotations
@@ -24,11 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tdof20.config import config_from_data
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
-from tdof20.methods.data import DEFAULT_DEPTH_MODE, HFFTransform, check_depth_mode, check_vector_origin, \
-    identity_classes, keypoints_from_json
+from tdof20.methods.contract import PoseMethod
+from tdof20.methods.data import DEFAULT_DEPTH_MODE, check_depth_mode, identity_classes, keypoints_from_json
 from tdof20.methods.hff6dof import DEFAULT_DECODER_CHANNELS, DEFAULT_HEAD_CHANNELS, HFF6DoF
+from tdof20.methods.hff6dof_data import HFFTransform, check_vector_origin
+from tdof20.methods.hff6dof_pose import default_min_pixels, recover_poses
 from tdof20.methods.losses import hff_loss
 
 MASKS = ("auto", "network", "gt")
@@ -103,7 +107,7 @@ def build(cfg: HFF6DoFConfig, meta: MethodMeta) -> HFF6DoF:
 
 class HFF6DoFTransform:
     """A dataset item -> HFF6DoF inputs (+ targets with ``train``) at ``meta.image_size``:
-    :class:`~tdof20.methods.data.HFFTransform` with the meta's classes (labels become class
+    :class:`~tdof20.methods.hff6dof_data.HFFTransform` with the meta's classes (labels become class
     indices 0..n) and keypoints. Output: rgb, geo, depth (the input depth), K, scene_id, im_id,
     label (when the item has labels); with ``train``: seg, vec, mask. Picklable."""
 
@@ -146,19 +150,12 @@ def mask_source(cfg: HFF6DoFConfig, net: HFF6DoF) -> str:
     return cfg.masks
 
 
-def needs_labels(cfg: HFF6DoFConfig, net: HFF6DoF) -> bool:
-    """Whether prediction reads the dataset's labels (masks 'gt', or 'auto' without a segmentation head)."""
-    return mask_source(cfg, net) == "gt"
-
-
 @torch.no_grad()
 def predict_poses(net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta
                   ) -> list[tuple[int, int, float, np.ndarray, np.ndarray]]:
     """Rows (b, obj_id, score, R (3,3), t (3,) mm) of a batch: the network, the object pixels (its
     segmentation's argmax, or the batch's ground-truth ``label`` with masks 'gt'), then
-    :func:`tdof20.methods.predict.recover_poses` (voting + fitting; score = mean inlier fraction)."""
-    from tdof20.methods.predict import default_min_pixels, recover_poses
-
+    :func:`tdof20.methods.hff6dof_pose.recover_poses` (voting + fitting; score = mean inlier fraction)."""
     source = mask_source(cfg, net)
     if source == "gt" and "label" not in batch:
         raise TdofError("predicting with ground-truth masks needs the labels in the batch")
@@ -197,8 +194,6 @@ def config_from_run(config: Mapping, path: str | Path | None = None) -> tuple[HF
     Such an old run records no diameters, symmetries or surface samples (prediction needs none):
     the meta then carries the keypoints' extent as diameter, no symmetry and the keypoints as
     samples."""
-    from tdof20.config import config_from_data
-
     try:
         if "method_config" in config:
             cfg = config_from_data(HFF6DoFConfig, dict(config["method_config"]), path or "")
@@ -239,5 +234,62 @@ def config_from_run(config: Mapping, path: str | Path | None = None) -> tuple[HF
     return cfg, meta
 
 
-__all__: Sequence[str] = ("HFF6DoFConfig", "HFF6DoFTransform", "build", "config_from_run", "forward", "loss",
-                          "mask_source", "needs_labels", "predict_poses")
+#: the keys of a run's "network" table (every HFF6DoF run records one)
+NETWORK_KEYS = ("n_classes", "n_keypoints", "fuse_stages", "seg_head", "decoder_channels", "head_channels",
+                "geo_channels")
+
+
+def network_table(net: HFF6DoF) -> dict:
+    """The network's "network" table (what a run records of its architecture)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()}
+
+
+class HFF6DoFMethod(PoseMethod):
+    """HFF6DoF's pieces (the functions of this module). Every parameter takes part in each loss, so
+    DistributedDataParallel need not look for unused ones; its transform gives class indices."""
+
+    config_class = HFF6DoFConfig
+    ddp_find_unused_parameters = False
+    labels_are_classes = True
+
+    def build(self, cfg: HFF6DoFConfig, meta: MethodMeta) -> HFF6DoF:
+        return build(cfg, meta)
+
+    def transform(self, cfg: HFF6DoFConfig, meta: MethodMeta, train: bool = False) -> HFF6DoFTransform:
+        return HFF6DoFTransform(cfg, meta, train=train)
+
+    def loss(self, net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta) -> tuple[torch.Tensor, dict]:
+        return loss(net, batch, cfg, meta)
+
+    def predict_poses(self, net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta) -> list:
+        return predict_poses(net, batch, cfg, meta)
+
+    def forward(self, net: HFF6DoF, batch: Mapping) -> dict:
+        return forward(net, batch)
+
+    def config_from_run(self, config: Mapping, path=None) -> tuple[HFF6DoFConfig, MethodMeta]:
+        return config_from_run(config, path)
+
+    def missing_run_keys(self, config: Mapping) -> list[str]:
+        """A run without "method_config" (written before the interface) needs its whole "network" table."""
+        if "method_config" in config:
+            return []
+        if not isinstance(config.get("network"), dict):
+            return ["network (not a table)" if "network" in config else "method_config"]
+        return [f"network.{k}" for k in NETWORK_KEYS if k not in config["network"]]
+
+    def run_record(self, net: HFF6DoF) -> dict:
+        return {"network": network_table(net)}
+
+    def mask_source(self, cfg: HFF6DoFConfig, net: HFF6DoF) -> str:
+        return mask_source(cfg, net)
+
+    def prediction_summary(self, cfg: HFF6DoFConfig, meta: MethodMeta) -> dict:
+        """The summary's options, ``min_pixels`` as used (0 = the image-size rule resolved)."""
+        return {**super().prediction_summary(cfg, meta),
+                "min_pixels": int(cfg.min_pixels) or default_min_pixels(meta.image_size)}
+
+
+__all__: Sequence[str] = ("HFF6DoFConfig", "HFF6DoFMethod", "HFF6DoFTransform", "NETWORK_KEYS", "build",
+                          "config_from_run", "forward", "loss", "mask_source", "network_table",
+                          "predict_poses")

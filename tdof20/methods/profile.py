@@ -45,8 +45,9 @@ import torch
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
+from tdof20.methods.data import collate
 from tdof20.methods.registry import Method, get_method, method_names
-from tdof20.methods.train import amp_dtype, select_device
+from tdof20.methods.devices import amp_dtype, select_device
 
 #: Table 3's input size
 TABLE3_SIZE = (480, 640)
@@ -163,7 +164,6 @@ def example_batch(method: Method, cfg, meta: MethodMeta, batch_size: int = 1, tr
                   n_objects: int = 3) -> dict:
     """A collated batch of ``batch_size`` synthetic frames through the method's transform, merged
     with the module's own ``example_batch`` (e.g. DenseFusion's crop inputs) when it has one."""
-    from tdof20.methods.data import collate
 
     tf = method.transform(cfg, meta, train=train)
     batch = collate([tf(synthetic_item(meta, n_objects=n_objects, seed=i)) for i in range(int(batch_size))])

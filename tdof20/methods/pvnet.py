@@ -46,7 +46,7 @@ keypoints and the model keypoints give the pose by EPnP then Levenberg-Marquardt
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,6 +57,7 @@ from torch import nn
 
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
+from tdof20.methods.contract import PoseMethod, forward_rgb
 from tdof20.methods.data import resize_colour, resize_nearest, scale_intrinsics
 from tdof20.methods.resnet import OUTPUT_STRIDE_8, ResNet18, load_torchvision_state_dict
 
@@ -515,5 +516,26 @@ def rotation_error_deg(R1: np.ndarray, R2: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
 
 
-__all__: Sequence[str] = ("PVNet", "PVNetConfig", "PVNetTransform", "build", "keypoint_vectors", "loss", "pnp_pose",
-                          "predict_poses", "project_keypoints", "vote_keypoints_2d")
+class PVNetMethod(PoseMethod):
+    """PVNet's pieces (the functions of this module); the network reads the colour image alone."""
+
+    config_class = PVNetConfig
+
+    def build(self, cfg: PVNetConfig, meta: MethodMeta) -> PVNet:
+        return build(cfg, meta)
+
+    def transform(self, cfg: PVNetConfig, meta: MethodMeta, train: bool = False) -> PVNetTransform:
+        return PVNetTransform(cfg, meta, train=train)
+
+    def loss(self, net: PVNet, batch: Mapping, cfg: PVNetConfig, meta: MethodMeta) -> tuple[torch.Tensor, dict]:
+        return loss(net, batch, cfg, meta)
+
+    def predict_poses(self, net: PVNet, batch: Mapping, cfg: PVNetConfig, meta: MethodMeta) -> list:
+        return predict_poses(net, batch, cfg, meta)
+
+    def forward(self, net: PVNet, batch: Mapping) -> dict:
+        return forward_rgb(net, batch)
+
+
+__all__ = ["PVNet", "PVNetConfig", "PVNetMethod", "PVNetTransform", "build", "keypoint_vectors", "loss", "pnp_pose",
+           "predict_poses", "project_keypoints", "vote_keypoints_2d"]

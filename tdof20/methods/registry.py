@@ -1,9 +1,12 @@
-"""The method interface and its registry: one :class:`Method` record per pose estimation method.
+"""The registry of pose estimation methods: one :class:`Method` record per method, each an object
+of the method contract (:class:`~tdof20.methods.contract.PoseMethod`) whose implementation loads on
+first use.
 
     from tdof20.methods.registry import get_method, method_names
     method_names()                          # ['hff6dof', 'pvnet', 'densefusion', 'ffb6d']
     m = get_method("pvnet")
     cfg = m.config_class()                  # every option with a working default (TOML: m.config_from)
+    cfg = m.with_options(cfg, parse_set_options(["n_hyp=64"]), "--set")   # strict keys, typed values
     meta = MethodMeta.from_catalog(obj_ids, m.default_image_size)
     net = m.build(cfg, meta)
     tf = m.transform(cfg, meta, train=True)          # dataset item -> dict of tensors (picklable)
@@ -11,58 +14,60 @@
     rows = m.predict_poses(net, batch, cfg, meta)    # [(b, obj_id, score, R (3,3), t (3,) mm)]
     out = m.forward(net, batch)                      # the network alone (profiling)
 
-A method is one module with five pieces — ``<Method>Config`` (a dataclass of plain types),
-``build(cfg, meta)``, ``<Method>Transform(cfg, meta, train)``, ``loss(net, batch, cfg, meta)`` and
-``predict_poses(net, batch, cfg, meta)`` — plus, optionally, ``example_batch(cfg, meta,
-batch_size)`` (network inputs without a dataset, for profiling) and ``config_from_run(config)``
-(the method's (cfg, meta) from a run's config.json written before runs recorded them). Registering
-it is one :func:`register` call with the module's import path: the module is imported only when a
-piece is used, so this file (and ``tdof20 --help``) stays torch-free.
+A record holds what is known without importing the method (its name, description, input, default
+image size, the paper's and the original's figures, what ``tdof20 reproduce`` runs of it) and a
+loader of its implementation class: the method's module, which imports torch, is imported only
+when a piece is used, so this file (and ``tdof20 --help``) stays torch-free.
 
 How to add a method: docs/methods.md ("How to add a method").
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-from collections.abc import Mapping
+import dataclasses
+import tomllib
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
+from tdof20.config import config_from_data
 from tdof20.errors import TdofError
+from tdof20.methods.base import MethodMeta
+from tdof20.methods.contract import PoseMethod, ReproduceSettings
 
 INPUTS = ("rgb", "rgbd")
+#: the method ``tdof20 train`` and :func:`tdof20.methods.train.train` take unless told otherwise (the paper's)
+DEFAULT_METHOD = "hff6dof"
 
 
-def _resolve(path: str) -> Any:
-    """'package.module:attribute' -> the attribute (the module imported now)."""
-    module, _, name = path.partition(":")
-    return getattr(importlib.import_module(module), name)
+def _plain(v: Any) -> Any:
+    """A config value as plain JSON/TOML types (tuples as lists, nested dataclasses as tables)."""
+    if isinstance(v, (tuple, list)):
+        return [_plain(x) for x in v]
+    if dataclasses.is_dataclass(v):
+        return {f.name: _plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
+    return v
 
 
-def forward_rgb(net, batch: Mapping):
-    """The network of an RGB-only method: ``net(batch["rgb"])`` on the network's device."""
-    dev = next(net.parameters()).device
-    return net(batch["rgb"].to(dev))
+def _deep_merge(base: dict, changes: Mapping) -> dict:
+    out = dict(base)
+    for k, v in changes.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), dict) else v
+    return out
 
 
-def forward_batch(net, batch: Mapping):
-    """A network that takes the whole batch: ``net(batch)`` (the batch already on the device)."""
-    return net(batch)
+@dataclass(frozen=True, eq=False)
+class Method(PoseMethod):
+    """One pose estimation method's record; the contract's members forward to its implementation.
 
-
-@dataclass(frozen=True)
-class Method:
-    """One pose estimation method.
-
-    name: what the command line calls it (``tdof20 train NAME``); module: its import path;
-    description: one line; inputs: 'rgb' or 'rgbd' (what it reads of a frame: RGB-D methods read
-    the transparent sensor's depth, raw or filled; the restored one only with the privileged depth_mode "restored");
+    name: what the command line calls it (``tdof20 train NAME``); description: one line;
+    inputs: 'rgb' or 'rgbd' (what it reads of a frame: RGB-D methods read the transparent sensor's
+    depth, raw or filled; the restored one only with the privileged depth_mode "restored");
+    implementation: () -> the method's :class:`~tdof20.methods.contract.PoseMethod` class (imports
+    its module); reproduce: what ``tdof20 reproduce`` runs of it;
     default_image_size: (H, W) the network sees unless a run says otherwise;
-    config / transform: the names of its config dataclass and transform class in ``module``;
-    forward: 'module:function' (net, batch) -> outputs, the network alone;
     paper: the paper's Table 3 figures for it ({"parameters_M", "macs_G", "fps", "gpu"}, those it
     gives); original: the original implementation's published or counted figures
     ({"parameters_M": ..., "source": ...}); notes: what its profile counts, where that differs
@@ -70,13 +75,11 @@ class Method:
     """
 
     name: str
-    module: str
     description: str
     inputs: str
-    config: str
-    transform_class: str
+    implementation: Callable[[], type[PoseMethod]]
+    reproduce: ReproduceSettings
     default_image_size: tuple[int, int] = (240, 320)
-    forward_fn: str = "tdof20.methods.registry:forward_batch"
     paper: Mapping[str, Any] = field(default_factory=dict)
     original: Mapping[str, Any] = field(default_factory=dict)
     notes: str = ""
@@ -85,27 +88,15 @@ class Method:
         if self.inputs not in INPUTS:
             raise ValueError(f"method {self.name}: inputs must be one of {INPUTS}, got {self.inputs!r}")
 
-    # ---------------------------------------------------------------------------------------
-    @property
-    def available(self) -> bool:
-        """Whether the method's module exists (found without importing it)."""
-        try:
-            return importlib.util.find_spec(self.module) is not None
-        except (ImportError, ValueError):
-            return False
+    @cached_property
+    def impl(self) -> PoseMethod:
+        """The method's implementation (its module imported now)."""
+        return self.implementation()()
 
-    def load(self):
-        """The method's module (imported on first use)."""
-        try:
-            return importlib.import_module(self.module)
-        except ModuleNotFoundError as e:
-            if e.name == self.module:
-                raise TdofError(f"method '{self.name}': its module {self.module} is not installed") from None
-            raise
-
+    # ----------------------------------------------------------------------- config
     @property
     def config_class(self) -> type:
-        return getattr(self.load(), self.config)
+        return self.impl.config_class
 
     def default_config(self):
         return self.config_class()
@@ -113,55 +104,70 @@ class Method:
     def config_from(self, data: Mapping | None, source: str | Path = ""):
         """The method's config from a parsed TOML table / JSON object (strict keys, typed values,
         one-line errors naming ``source``); None or {} = the defaults."""
-        from tdof20.config import config_from_data
-
         return config_from_data(self.config_class, dict(data or {}), source)
 
     def config_to_data(self, cfg) -> dict:
         """A config as plain JSON/TOML types (tuples as lists), what a run records."""
-        import dataclasses
+        return _plain(cfg)
 
-        def plain(v):
-            if isinstance(v, (tuple, list)):
-                return [plain(x) for x in v]
-            if dataclasses.is_dataclass(v):
-                return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
-            return v
+    def with_options(self, cfg, changes: Mapping, source: str | Path = ""):
+        """``cfg`` with ``changes`` applied (a nested config: nested tables), through the same strict,
+        typed checks as a TOML file (one-line errors naming ``source`` and the key)."""
+        if not changes:
+            return cfg
+        return self.config_from(_deep_merge(self.config_to_data(cfg), changes), source)
 
-        return plain(cfg)
+    # ----------------------------------------------------------------------- the contract
+    @property
+    def ddp_find_unused_parameters(self) -> bool:
+        return self.impl.ddp_find_unused_parameters
+
+    @property
+    def labels_are_classes(self) -> bool:
+        return self.impl.labels_are_classes
 
     def build(self, cfg, meta):
-        return self.load().build(cfg, meta)
+        return self.impl.build(cfg, meta)
 
     def transform(self, cfg, meta, train: bool = False):
-        """The method's transform: dataset item -> inputs (+ targets with ``train``)."""
-        return getattr(self.load(), self.transform_class)(cfg, meta, train=train)
+        return self.impl.transform(cfg, meta, train=train)
 
     def loss(self, net, batch, cfg, meta):
-        return self.load().loss(net, batch, cfg, meta)
+        return self.impl.loss(net, batch, cfg, meta)
 
     def predict_poses(self, net, batch, cfg, meta):
-        return self.load().predict_poses(net, batch, cfg, meta)
+        return self.impl.predict_poses(net, batch, cfg, meta)
 
     def forward(self, net, batch):
-        return _resolve(self.forward_fn)(net, batch)
+        return self.impl.forward(net, batch)
 
     def example_batch(self, cfg, meta, batch_size: int = 1) -> dict | None:
-        """The module's ``example_batch`` (network inputs without a dataset), or None."""
-        fn = getattr(self.load(), "example_batch", None)
-        return None if fn is None else fn(cfg, meta, batch_size)
+        return self.impl.example_batch(cfg, meta, batch_size)
 
     def config_from_run(self, config: Mapping, path: str | Path | None = None):
-        """(cfg, meta) of a run from its config.json: the module's ``config_from_run`` when it has
-        one (runs written before the interface), else the recorded "method_config" and "meta"."""
-        fn = getattr(self.load(), "config_from_run", None)
-        if fn is not None:
-            return fn(config, path)
-        from tdof20.methods.base import MethodMeta
-
+        """(cfg, meta) of a run from its config.json: the implementation's reading (runs written
+        before the interface), else the recorded "method_config" and "meta"."""
+        own = self.impl.config_from_run(config, path)
+        if own is not None:
+            return own
         if "meta" not in config:
             raise TdofError(f"a {self.name} run's config lacks its 'meta' (objects, keypoints, image size)", path)
         return self.config_from(config.get("method_config"), path or ""), MethodMeta.from_json(config["meta"])
+
+    def missing_run_keys(self, config: Mapping) -> list[str]:
+        return self.impl.missing_run_keys(config)
+
+    def run_record(self, net) -> dict:
+        return self.impl.run_record(net)
+
+    def mask_source(self, cfg, net) -> str:
+        return self.impl.mask_source(cfg, net)
+
+    def needs_labels(self, cfg, net) -> bool:
+        return self.impl.needs_labels(cfg, net)
+
+    def prediction_summary(self, cfg, meta) -> dict:
+        return self.impl.prediction_summary(cfg, meta)
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -179,19 +185,18 @@ def register(method: Method, replace: bool = False) -> Method:
 
 
 def method_names() -> list[str]:
-    """The registered methods whose module exists, in registration order."""
-    return [n for n, m in _REGISTRY.items() if m.available]
+    """The registered methods, in registration order."""
+    return list(_REGISTRY)
 
 
 def methods() -> list[Method]:
-    return [_REGISTRY[n] for n in method_names()]
+    return list(_REGISTRY.values())
 
 
 def get_method(name: str) -> Method:
     """The method called ``name``; an unknown one is a one-line TdofError listing the known ones."""
-    key = str(name).strip().lower()
-    m = _REGISTRY.get(key)
-    if m is None or not m.available:
+    m = _REGISTRY.get(str(name).strip().lower())
+    if m is None:
         raise TdofError(f"unknown method '{name}' (known: {', '.join(method_names())})")
     return m
 
@@ -206,53 +211,128 @@ def run_method(config: Mapping, path: str | Path | None = None) -> Method:
         raise TdofError(f"the run's method: {e}", path) from None
 
 
+def parse_set_options(items: Iterable[str], option: str = "--set") -> dict:
+    """``key=value`` strings (the command line's repeatable ``--set``) -> a nested table of options:
+    the value is read as a TOML value (a number, true/false, a quoted string, an array), else taken as
+    a bare string (``masks=gt``); a dotted key sets an option of a nested table (``a.b=1``).
+    One-line errors naming the item."""
+    out: dict = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        key = key.strip()
+        parts = key.split(".")
+        if not eq or not all(p.strip() for p in parts):
+            raise TdofError(f"{option} {item!r}: give key=value (e.g. {option} fuse_stages=2)")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        table = out
+        for p in parts[:-1]:
+            table = table.setdefault(p.strip(), {})
+            if not isinstance(table, dict):
+                raise TdofError(f"{option} {item!r}: {p} is set as a value and as a table")
+        if isinstance(table.get(parts[-1].strip()), dict):
+            raise TdofError(f"{option} {item!r}: {key} is set as a value and as a table")
+        table[parts[-1].strip()] = value
+    return out
+
+
 # --------------------------------------------------------------------------------------------
-# the methods (one entry each; the modules load on first use)
+# the methods (one record each; each loader imports its module, which imports torch, on first use)
+
+
+def _hff6dof() -> type[PoseMethod]:
+    from tdof20.methods.hff6dof_method import HFF6DoFMethod  # imports torch
+
+    return HFF6DoFMethod
+
+
+def _pvnet() -> type[PoseMethod]:
+    from tdof20.methods.pvnet import PVNetMethod  # imports torch
+
+    return PVNetMethod
+
+
+def _densefusion() -> type[PoseMethod]:
+    from tdof20.methods.densefusion import DenseFusionMethod  # imports torch
+
+    return DenseFusionMethod
+
+
+def _ffb6d() -> type[PoseMethod]:
+    from tdof20.methods.ffb6d import FFB6DMethod  # imports torch
+
+    return FFB6DMethod
+
+
+def _hff6dof_unused_choices(options: Mapping) -> tuple[str, ...]:
+    """HFF6DoF's bearing_tol acts only with bearing voting, inlier_cos only with 3D voting."""
+    return ("bearing_tol",) if options.get("voting") == "3d" else ("inlier_cos",)
+
 
 register(Method(
-    name="hff6dof", module="tdof20.methods.hff6dof_method",
+    name="hff6dof", implementation=_hff6dof,
     description="HFF6DoF (the paper): RGB and geometry ResNet34s fused hierarchically, 3D keypoint vectors, "
                 "voting + fitting",
-    inputs="rgbd", config="HFF6DoFConfig", transform_class="HFF6DoFTransform", default_image_size=(240, 320),
-    forward_fn="tdof20.methods.hff6dof_method:forward",
+    inputs="rgbd", default_image_size=(240, 320),
     paper={"parameters_M": 56.82, "macs_G": 85.12, "fps": 29.38, "gpu": "GTX 1080Ti"},
     original={"parameters_M": 56.82, "source": "the paper, Table 3 (no code released)"},
     notes="decoder widths sized to the paper's 56.82 M (the paper leaves the decoder open); the multiply-adds "
-          "stay under its 85.12 G"))
+          "stay under its 85.12 G",
+    reproduce=ReproduceSettings(
+        label="HFF6DoF (bearing + PnP)", variant_labels={"3d": "HFF6DoF (3D voting + LSQ)"}, rank=1,
+        epochs={"smoke": 1, "cpu": 8, "gpu": 20, "full": 100},
+        choice_options=("depth_mode", "min_pixels", "max_points", "n_hyp", "inlier_cos", "bearing_tol"),
+        candidates={"depth_mode": ["filled", "raw"], "bearing_tol": [0.02, 0.04]},
+        unused_choices=_hff6dof_unused_choices)))
 
 register(Method(
-    name="pvnet", module="tdof20.methods.pvnet",
+    name="pvnet", implementation=_pvnet,
     description="PVNet (Peng et al. 2019): RGB only, ResNet18 at stride 8, 2D keypoint vectors, RANSAC voting + PnP",
-    inputs="rgb", config="PVNetConfig", transform_class="PVNetTransform", default_image_size=(240, 320),
-    forward_fn="tdof20.methods.registry:forward_rgb",
+    inputs="rgb", default_image_size=(240, 320),
     paper={},
     original={"parameters_M": 12.96, "source": "clean-pvnet's Resnet18 for one object (2 classes): 12,957,748, "
                                              "counted from lib/networks/pvnet/resnet18.py"},
     notes="one network for all objects (the original: one per object): +11,913 parameters for 20 objects in the "
           "segmentation head and the per-class vertex heads, of which one 18-channel head runs per pixel; the "
-          "paper's Table 3 gives no PVNet figures"))
+          "paper's Table 3 gives no PVNet figures",
+    reproduce=ReproduceSettings(
+        label="PVNet", epochs={"smoke": 1, "cpu": 8, "gpu": 20, "full": 100},
+        choice_options=("min_pixels", "inlier_cos", "vote_max_pixels", "min_inlier_ratio", "n_hyp", "max_rounds"),
+        candidates={"inlier_cos": [0.99, 0.97]})))
 
 register(Method(
-    name="densefusion", module="tdof20.methods.densefusion",
+    name="densefusion", implementation=_densefusion,
     description="DenseFusion (Wang et al. 2019): PSPNet-ResNet18 crop embedding + PointNet, dense fusion, "
                 "per-point poses, iterative refiner",
-    inputs="rgbd", config="DenseFusionConfig", transform_class="DenseFusionTransform",
-    default_image_size=(240, 320), paper={"macs_G": 142.25},
+    inputs="rgbd", default_image_size=(240, 320), paper={"macs_G": 142.25},
     original={"parameters_M": 23.39, "source": "j96w/DenseFusion lib/network.py for YCB (21 objects), counted "
                                               "from its modules: PoseNet 21.45 M (its PSPNet-ResNet18, no BN, "
                                               "17.46 M) + PoseRefineNet 1.94 M; no segmentation network of its "
                                               "own (PoseCNN's labels)"},
     notes="counts its own PSPNet-ResNet18 segmentation network (17.4 M; the original takes PoseCNN's labels) "
           "and BatchNorm; one forward = segmentation at full size + the estimator on one 160x160 crop of 1,000 "
-          "points + one refiner pass: each further object adds the estimator and 2 refiner passes (~17 G)"))
+          "points + one refiner pass: each further object adds the estimator and 2 refiner passes (~17 G)",
+    reproduce=ReproduceSettings(
+        label="DenseFusion", epochs={"smoke": 1, "cpu": 4, "gpu": 10, "full": 50},
+        choice_options=("depth_mode", "refine_iterations", "min_points"),
+        candidates={"refine_iterations": [2, 0]},
+        preset_options={"smoke": {"n_points": 128, "crop_size": 48}, "cpu": {"n_points": 500, "crop_size": 64}})))
 
 register(Method(
-    name="ffb6d", module="tdof20.methods.ffb6d",
+    name="ffb6d", implementation=_ffb6d,
     description="FFB6D (He et al. 2021): PSPNet-ResNet34 + RandLA-Net with bidirectional fusion, keypoint "
                 "offsets, MeanShift + least squares",
-    inputs="rgbd", config="FFB6DConfig", transform_class="FFB6DTransform", default_image_size=(240, 320),
+    inputs="rgbd", default_image_size=(240, 320),
     paper={"macs_G": 215.54},
     original={"parameters_M": 33.8, "source": "published with FFB6D (He et al., CVPR 2021): FFB6D 33.8 M, "
                                              "PVN3D 39.2 M (as issue 14 quotes them)"},
     notes="12,800 points sampled from the depth (the original's 480x640/24); neighbour indices are computed "
-          "in the transform (scipy), outside the network's time; the counter skips KNN and MeanShift"))
+          "in the transform (scipy), outside the network's time; the counter skips KNN and MeanShift",
+    reproduce=ReproduceSettings(
+        label="FFB6D", epochs={"smoke": 1, "cpu": 4, "gpu": 10, "full": 50},
+        choice_options=("depth_mode", "bandwidth_mm", "min_points", "max_votes"),
+        candidates={"bandwidth_mm": [40.0, 20.0]},
+        preset_options={"smoke": {"n_points": 512, "meanshift_iters": 30, "max_votes": 500},
+                        "cpu": {"n_points": 2048}})))

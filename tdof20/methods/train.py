@@ -1,25 +1,23 @@
 """Training any registered method on a dataset split (``tdof20 train METHOD``): one loop for all
-(device, AMP, DDP, checkpoints, resume, progress, loss curves), the method's pieces from the
-registry (:mod:`tdof20.methods.registry`).
+(device, AMP, DDP, checkpoints, resume, progress, loss curves), the method's pieces from its
+contract (:mod:`tdof20.methods.contract`, through the registry).
 
     from tdof20.methods.train import train
-    run = train("ROOT", "simple", "runs/simple", method="hff6dof", image_size=(240, 320), epochs=20)
+    run = train("ROOT", "simple", "runs/simple", image_size=(240, 320), epochs=20)   # the paper's method
     run = train("ROOT", "simple", "runs/pvnet", method="pvnet", method_config={"n_hyp": 64})
+    run = train("ROOT", "simple", "runs/fuse2", fuse_stages=2)      # an option of the method's config
 
-A run folder holds everything needed to resume and to predict:
+A run folder holds everything needed to resume and to predict (read and checked by
+:mod:`tdof20.methods.runs`):
 
-    RUN/config.json       the method, its config ("method_config"), its meta (objects in class order,
-                          keypoints, diameters, symmetries, surface samples, image size), the input
-                          depth mode, the split, the dataset and the training options (what predict
-                          rebuilds the network from); an HFF6DoF run also keeps its "network" table
+    RUN/config.json       the method, its config ("method_config"), its meta, the input depth mode,
+                          the split, the dataset and the training options (what predict rebuilds the
+                          network from), and what the method records of its own (``run_record``)
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
     RUN/history.json      per-epoch losses, learning rate, images/s (several processes: each one's
                           weights digest at the end, which must agree)
     RUN/loss.png          loss curves (total and the method's parts) and learning rate
     RUN/data/{split}_train.h5   the packed training shard (made on first use, reused afterwards)
-
-Runs written before the interface (HFF6DoF's config.json without "method_config") still resume
-and predict: the method rebuilds its config from the run's "network" table.
 
 Running ``train`` again on the same RUN resumes from last.pt: the epoch and step counters, the
 optimiser's moments and the loss history continue; asking for more ``epochs`` (or a larger
@@ -36,6 +34,8 @@ Options come from keyword arguments or a TOML file (``--config``, :func:`load_tr
     [method]                     # the method's config (HFF6DoFConfig, PVNetConfig, ...)
     fuse_stages = 2
 
+and single options over it (``--set fuse_stages=2``, :func:`tdof20.methods.registry.parse_set_options`).
+
 Several processes: ``torchrun --nproc_per_node N -m tdof20 train METHOD ...`` (or any launcher
 that sets RANK / LOCAL_RANK / WORLD_SIZE): one process per GPU (NCCL), or per CPU process with
 ``--device cpu`` (gloo); DistributedDataParallel over the method's loss, a DistributedSampler,
@@ -46,77 +46,41 @@ a digest of their weights (history.json's ``processes``).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
-import os
 import time
-import zipfile
+import tomllib
 from collections.abc import Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
+from tdof20.config import config_from_data
+from tdof20.dataset.reader import open_dataset
+from tdof20.dataset.shards import ShardDataset
 from tdof20.errors import TdofError
-from tdof20.formats import read_json, write_json
-from tdof20.formats.io import check_parents
+from tdof20.formats import write_json
+from tdof20.methods.base import IMAGE_SIDE, MethodMeta
 from tdof20.methods.data import (TransformedDataset, check_depth_mode, collate, dataset_classes, dataset_meta,
-                                 identity_classes, keypoints_to_json, split_part_images, worker_init)
-from tdof20.methods.registry import Method, get_method, method_names, run_method
+                                 keypoints_to_json, worker_init)
+from tdof20.methods.devices import amp_dtype, distributed, select_device, to_device
+from tdof20.methods.history import NOT_LOSSES, plot_losses
+from tdof20.methods.registry import DEFAULT_METHOD, Method, get_method
+from tdof20.methods.runs import (CHECKPOINT, CONFIG, RUN_VERSION, check_run_folder, check_weights, depth_mode_of,
+                                 open_config, parameters_digest, read_checkpoint, read_run_config, run_classes,
+                                 save_atomic)
+from tdof20.methods.runs import load_run  # noqa: F401  (re-exported: tests/test_dataset_reader.py imports it here)
+from tdof20.methods.train_data import images_digest, shard_for, train_images
 from tdof20.progress import console, progress as progress_bar
 
 LR_SCHEDULES = ("cosine", "step")
-CHECKPOINT = "last.pt"
-RUN_VERSION = 2  # config.json's "version": what this tdof20 writes and the newest it reads
-CONFIG = "config.json"
 
 
 # --------------------------------------------------------------------------------------------
-# devices and processes
-
-
-#: the smallest and largest image side a training takes (a typo such as 100000x100000 would try to
-#: allocate tens of GB before failing)
-IMAGE_SIDE = (8, 4096)
-
-
-def select_device(device: str = "auto") -> torch.device:
-    """'auto' -> the first CUDA GPU, else Apple MPS, else the CPU; anything else as torch reads it."""
-    if device in (None, "", "auto"):
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-        mps = getattr(torch.backends, "mps", None)
-        if mps is not None and mps.is_available():
-            return torch.device("mps")
-        return torch.device("cpu")
-    try:
-        dev = torch.device(device)
-    except RuntimeError as e:
-        raise TdofError(f"--device: {e}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise TdofError(f"--device {device}: this torch has no CUDA device")
-    return dev
-
-
-def _distributed() -> tuple[int, int, int]:
-    """(rank, local_rank, world_size) from the launcher's environment (1 process without one)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return 0, 0, 1
-    return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
-
-
-def is_main_process() -> bool:
-    """True in a single process and in process 0 of a launch (torchrun): the one that writes and prints."""
-    return _distributed()[0] == 0
-
-
-def amp_dtype(dev: torch.device) -> torch.dtype:
-    return torch.bfloat16 if dev.type == "cuda" and torch.cuda.is_bf16_supported() else torch.float16
+# options
 
 
 def lr_factor(step: int, total: int, schedule: str, warmup: int) -> float:
@@ -130,14 +94,6 @@ def lr_factor(step: int, total: int, schedule: str, warmup: int) -> float:
     if schedule == "step":
         return 1.0 if frac < 0.6 else (0.1 if frac < 0.85 else 0.01)
     raise TdofError(f"unknown learning-rate schedule '{schedule}' (valid: {', '.join(LR_SCHEDULES)})")
-
-
-# --------------------------------------------------------------------------------------------
-# run folder
-
-
-# --------------------------------------------------------------------------------------------
-# options
 
 
 @dataclass
@@ -169,10 +125,6 @@ class TrainOptions:
 def load_train_config(path: str | Path, method: Method) -> tuple[TrainOptions, Any]:
     """(TrainOptions, the method's config) from a TOML file with the tables [train] and [method]
     (either may be left out); strict keys, one-line errors naming the file."""
-    import tomllib
-
-    from tdof20.config import config_from_data
-
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
@@ -199,313 +151,21 @@ def _replace(cfg, changes: Mapping[str, Any], method: Method):
     return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
-def make_method_config(method: Method, given=None, **changes):
+def make_method_config(method: Method, given=None, options: Mapping | None = None, **changes):
     """The method's config: ``given`` (a config, a dict of its options, or None = defaults) with
-    the ``changes`` that are not None applied."""
+    ``options`` (a table of its options, nested tables for a nested config: checked as a TOML
+    file's, one line naming the option) and then the ``changes`` of the command line's shortcuts
+    (``depth_mode``, ``backbone_weights``: refused naming the option where the method lacks it)
+    applied; None values are left out."""
     if given is None or isinstance(given, Mapping):
         cfg = method.config_from(given or {}, "method options")
     elif isinstance(given, method.config_class):
         cfg = given
     else:
-        raise TdofError(f"method_config for {method.name} must be a {method.config} or a dict, "
+        raise TdofError(f"method_config for {method.name} must be a {method.config_class.__name__} or a dict, "
                         f"got {type(given).__name__}")
+    cfg = method.with_options(cfg, {k: v for k, v in (options or {}).items() if v is not None}, "method options")
     return _replace(cfg, {k: v for k, v in changes.items() if v is not None}, method)
-
-
-def depth_mode_of(cfg) -> str:
-    """The input depth a method's config reads ('raw' | 'filled' | 'restored'), 'none' for RGB only."""
-    return str(getattr(cfg, "depth_mode", "none"))
-
-
-# --------------------------------------------------------------------------------------------
-# run folder
-
-
-#: the keys of an HFF6DoF run written before the interface (its "network" table)
-NETWORK_KEYS = ("n_classes", "n_keypoints", "fuse_stages", "seg_head", "decoder_channels", "head_channels",
-                "geo_channels")
-RUN_KEYS = ("image_size", "depth_mode", "split", "keypoints")
-
-
-def read_run_config(run_dir: str | Path, advice: str = "") -> dict:
-    """A run's config.json, checked to name a registered method and to hold every key predict and
-    resume need (an HFF6DoF run written before the interface: its "network" table)."""
-    path = Path(run_dir) / CONFIG
-    if not path.exists():
-        raise TdofError(f"missing: the run folder holds {CHECKPOINT} without the {CONFIG} it belongs to{advice}", path)
-    config = read_json(path)
-    if not isinstance(config, dict) or not isinstance(config.get("method"), str):
-        raise TdofError(f"not a training run's {CONFIG} (it names no method){advice}", path)
-    run_method(config, path)
-    version = config.get("version", 1)  # runs from before the field are version 1
-    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= RUN_VERSION:
-        raise TdofError(f"is a run of version {version!r}; this tdof20 reads versions 1..{RUN_VERSION} (a newer "
-                        f"tdof20 wrote it: update tdof20){advice}", path)
-    missing = [k for k in RUN_KEYS if k not in config]
-    if "method_config" not in config:
-        if isinstance(config.get("network"), dict):
-            missing += [f"network.{k}" for k in NETWORK_KEYS if k not in config["network"]]
-        else:
-            missing.append("network (not a table)" if "network" in config else "method_config")
-    if missing:
-        raise TdofError(f"lacks {', '.join(missing)}{advice}", path)
-    return config
-
-
-def build_network(config: dict, path: Path | None = None) -> torch.nn.Module:
-    """The network a run's config.json describes (``path``: that file, for the message)."""
-    return open_config(config, path)[2]
-
-
-def open_config(config: dict, path: Path | None = None) -> tuple[Method, Any, torch.nn.Module, Any]:
-    """(method, cfg, network with fresh weights, meta) of a run's config.json."""
-    method = run_method(config, path)
-    cfg, meta = method.config_from_run(config, path)
-    try:
-        return method, cfg, method.build(cfg, meta), meta
-    except (ValueError, TypeError, RuntimeError) as e:
-        raise TdofError(f"its options do not make a {method.name} network ({e})", path) from None
-
-
-
-def _size_text(n: int) -> str:
-    return f"{n / 1e6:.1f} MB" if n >= 100_000 else f"{n} bytes"
-
-
-def _load_failure(e: BaseException) -> str:
-    """What torch.load's exception says about a file, in a few words."""
-    text = (str(e).strip().splitlines() or [""])[0]
-    if isinstance(e, EOFError):
-        return "the file ends early: it is cut short"
-    if "zip archive" in text or "central directory" in text:
-        return "its zip archive is damaged"
-    if text.startswith("Weights only load failed"):
-        return "it holds objects other than tensors and plain data"
-    text = text.split(". ")[0]
-    return f"damaged or not a torch checkpoint ({type(e).__name__}: {text[:80]})"
-
-
-def read_checkpoint(path: str | Path, needs: tuple[str, ...] = ("model",), advice: str = "",
-                    mmap: bool = False) -> dict:
-    """The dict a run's last.pt holds, loaded on the CPU without running any code from the file
-    (``weights_only``); a one-line TdofError naming the file when it is truncated, random bytes, or
-    lacks one of ``needs``. The file itself is left as it is. ``mmap``: map the file instead of
-    reading it (only the tensors used are read: predict reads the weights, not AdamW's moments)."""
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as e:
-        raise TdofError(f"cannot be read ({e.strerror}){advice}", path) from None
-    if path.is_dir():
-        raise TdofError(f"is a folder, not a checkpoint{advice}", path)
-    if size == 0:
-        raise TdofError(f"cannot be read as a checkpoint (the file is empty){advice}", path)
-    if not zipfile.is_zipfile(path):
-        with open(path, "rb") as f:
-            truncated = f.read(4) == b"PK\x03\x04"
-        why = ("truncated: it begins like a torch checkpoint but its end is missing" if truncated else
-               "not a torch checkpoint: not the zip archive torch.save writes")
-        raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {why}){advice}", path)
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-    except Exception as e:  # a damaged file can make the unpickler fail in any way
-        raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {_load_failure(e)}){advice}",
-                        path) from None
-    if not isinstance(ckpt, dict):
-        raise TdofError(f"is not an HFF6DoF checkpoint (it holds a {type(ckpt).__name__}, not a dict with "
-                        f"the network's weights){advice}", path)
-    missing = [k for k in needs if k not in ckpt]
-    if missing:
-        raise TdofError(f"is not an HFF6DoF checkpoint (no {', '.join(missing)} in it){advice}", path)
-    model = ckpt["model"]
-    if not isinstance(model, dict) or not all(isinstance(v, torch.Tensor) for v in model.values()):
-        raise TdofError(f"is not an HFF6DoF checkpoint ('model' is not a dict of tensors){advice}", path)
-    return ckpt
-
-
-def _weights(keys: list[str]) -> str:
-    return f"{len(keys)} weight{'s' if len(keys) != 1 else ''}"
-
-
-def _examples(keys: list[str]) -> str:
-    return ", ".join(keys[:2]) + (", ..." if len(keys) > 2 else "")
-
-
-def check_weights(net: torch.nn.Module, ckpt: dict, config: dict, path: Path, advice: str = "") -> None:
-    """A one-line TdofError naming the checkpoint ``path`` when its weights do not fit ``net`` (the
-    network ``config``, the run's config.json, describes; it may live on the meta device) or the
-    checkpoint was written by a run of other options."""
-    why = []
-    saved = ckpt.get("config")
-    if isinstance(saved, dict):
-        if saved.get("method") not in (None, config.get("method")):
-            why.append(f"a {saved.get('method')} network here, {config.get('method')} in {CONFIG}")
-        old, now = saved.get("network") or {}, config.get("network") or {}
-        why += [f"{k} {old.get(k)} here, {now.get(k)} in {CONFIG}" for k in NETWORK_KEYS
-                if k in old and old.get(k) != now.get(k)]
-        old, now = saved.get("method_config") or {}, config.get("method_config") or {}
-        why += [f"{k} {old.get(k)} here, {now.get(k)} in {CONFIG}" for k in sorted(set(old) & set(now))
-                if old.get(k) != now.get(k) and k not in saved.get("network", {})]
-        why += [f"{k} {saved.get(k)} here, {config.get(k)} in {CONFIG}" for k in ("image_size", "depth_mode")
-                if k in saved and saved.get(k) != config.get(k)]
-        if "keypoints" in saved and saved["keypoints"] != config.get("keypoints"):
-            why.append(f"other keypoints than {CONFIG}'s")
-    own, state = net.state_dict(), ckpt["model"]
-    missing = [k for k in own if k not in state]
-    extra = [k for k in state if k not in own]
-    shape = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
-    if missing:
-        why.append(f"{_weights(missing)} missing ({_examples(missing)})")
-    if extra:
-        why.append(f"{_weights(extra)} the network does not have ({_examples(extra)})")
-    if shape:
-        k = shape[0]
-        why.append(f"{_weights(shape)} of another shape ({k} {list(state[k].shape)}, the network's "
-                   f"{list(own[k].shape)})")
-    if why:
-        raise TdofError(f"holds another network than the run's {CONFIG} describes: {'; '.join(why)}{advice}", path)
-
-
-def run_classes(config: dict) -> list[int]:
-    """The object id of each class 1..n of a run (its meta's objects, else config.json's
-    "classes"; an HFF6DoF run recorded without either: ids 1..n_classes-1, class = obj_id)."""
-    if isinstance(config.get("meta"), dict) and "obj_ids" in config["meta"]:
-        return [int(c) for c in config["meta"]["obj_ids"]]
-    classes = config.get("classes")
-    if classes is None:
-        return identity_classes(config["network"]["n_classes"])
-    return [int(c) for c in classes]
-
-
-class Run(NamedTuple):
-    """A trained run, opened: its method, the method's config, the network (last weights, eval
-    mode), the meta and the run's config.json."""
-    method: Method
-    cfg: Any
-    net: torch.nn.Module
-    meta: Any
-    config: dict
-
-
-def open_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Run:
-    """The run in ``run_dir`` with its last weights on ``device`` (any registered method; HFF6DoF
-    runs written before the interface too)."""
-    run_dir = Path(run_dir)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise TdofError("is a file, not a run folder (tdof20 train METHOD --out makes one)", run_dir)
-    if not (run_dir / CONFIG).exists() or not (run_dir / CHECKPOINT).exists():
-        raise TdofError(f"not an HFF6DoF run nor another method's (a run folder holds {CONFIG} and {CHECKPOINT}; "
-                        f"train one first: tdof20 train METHOD)", run_dir)
-    advice = ": restore it from a copy, or train a new run into another --out"
-    config = read_run_config(run_dir)
-    ckpt = read_checkpoint(run_dir / CHECKPOINT, advice=advice, mmap=True)
-    method, cfg, net, meta = open_config(config, run_dir / CONFIG)
-    check_weights(net, ckpt, config, run_dir / CHECKPOINT, advice)
-    net.load_state_dict(ckpt["model"])
-    return Run(method, cfg, net.to(device).eval(), meta, config)
-
-
-def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[torch.nn.Module, dict]:
-    """(network with the run's last weights, in eval mode, on ``device``; the run's config)."""
-    r = open_run(run_dir, device)
-    return r.net, r.config
-
-
-def check_run_folder(out_run: Path, dataset_root: Path) -> None:
-    """Refuse, before any work, a --out that cannot be (or must not be made) a run folder."""
-    if out_run.exists() and not out_run.is_dir():
-        raise TdofError("--out is a file, not a run folder: give a folder (created) or an existing run to resume",
-                        out_run)
-    check_parents(out_run, "--out")
-    if (out_run / "dataset_info.json").exists() or out_run.resolve() == dataset_root.resolve():
-        raise TdofError("--out is a dataset root (it is only read): give a run folder of its own", out_run)
-    cfg = out_run / CONFIG
-    if cfg.exists() and not (out_run / CHECKPOINT).exists():
-        try:
-            foreign = read_json(cfg).get("method") not in method_names()
-        except (TdofError, AttributeError):
-            foreign = True
-        if foreign:
-            raise TdofError(f"--out holds a {CONFIG} that is not a training run's (training would overwrite it): "
-                            "give another --out", out_run)
-
-
-
-def parameters_digest(net: torch.nn.Module) -> str:
-    """SHA-256 of the network's parameters (bytes, in order): equal digests = identical weights."""
-    h = hashlib.sha256()
-    for name, p in net.named_parameters():
-        h.update(name.encode())
-        h.update(p.detach().float().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
-
-
-def _save_atomic(obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def drop_optimizer(run: str | Path) -> int:
-    """Rewrite RUN/last.pt without the optimiser's (and AMP scaler's) state, for a run whose training
-    is over: the weights, counters, history and config stay, so predict, score and the tables read
-    it as before, while AdamW's two moments per weight (two thirds of the file: HFF6DoF's 650 MB
-    become 220 MB) go. Such a run cannot be trained on. Returns the bytes saved (0 when there was
-    nothing to drop)."""
-    path = Path(run) / CHECKPOINT
-    ckpt = read_checkpoint(path, needs=("model", "epoch", "step"))
-    if "optimizer" not in ckpt and "scaler" not in ckpt:
-        return 0
-    before = path.stat().st_size
-    _save_atomic({k: v for k, v in ckpt.items() if k not in ("optimizer", "scaler")}, path)
-    return before - path.stat().st_size
-
-
-#: history keys that are not losses
-_NOT_LOSSES = ("step", "epoch", "lr")
-
-
-def plot_losses(history: list[dict], path: Path, title: str = "training") -> Path:
-    """Loss curves (total and every part the method's loss reports, per step, with a moving
-    average) and the learning rate, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    steps = np.array([h["step"] for h in history])
-    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
-    w = max(1, len(history) // 50)
-    keys = ["loss"] + sorted({k for h in history for k in h} - {"loss", *_NOT_LOSSES})
-    names = {"loss": "total", "seg": "segmentation", "vec": "vector field (L1)"}
-    for i, key in enumerate(keys):
-        y = np.array([h.get(key, np.nan) for h in history], dtype=float)
-        y = np.where(y > 0, y, np.nan)  # a log axis: parts that are 0 or negative are not drawn
-        if not np.isfinite(y).any():
-            continue
-        colour = "black" if key == "loss" else f"C{i - 1}"
-        ax.plot(steps, y, color=colour, alpha=0.25, lw=0.8)
-        if len(y) >= w:
-            ys = np.convolve(np.nan_to_num(y, nan=np.nanmean(y)), np.ones(w) / w, mode="valid")
-            ax.plot(steps[w - 1:], ys, color=colour, lw=1.6, label=names.get(key, key))
-    ax.set_yscale("log")
-    ax.set_xlabel("optimiser step")
-    ax.set_ylabel("loss")
-    ax.grid(alpha=0.3, which="both")
-    ax2 = ax.twinx()
-    ax2.plot(steps, [h["lr"] for h in history], color="tab:green", lw=1, ls="--", label="learning rate")
-    ax2.set_ylabel("learning rate")
-    h1, l1 = ax.get_legend_handles_labels()
-    h2, l2 = ax2.get_legend_handles_labels()
-    ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
-    ax.set_title(title)
-    fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
 
 
 def _check_same(saved: dict, new: dict, path: Path) -> None:
@@ -533,81 +193,6 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
                             "other network or data options", path)
 
 
-
-def _shard_for(dataset_root: Path, split: str, out_run: Path, shard: str | Path | None, rank: int,
-               show: bool, cache_dir: str | Path | None = None, images: list | None = None,
-               part: str = "train") -> Path:
-    from tdof20.dataset.build import pack
-
-    if shard is not None:
-        path = Path(shard)
-        if not path.exists():
-            raise TdofError("no such shard (write one with `tdof20 dataset pack`)", path)
-        return path
-    if images is None:
-        path = out_run / "data" / f"{split}_train.h5"
-        if rank == 0 and not path.exists():
-            pack(dataset_root, split, "train", path, show_progress=show, cache_dir=cache_dir)
-        return path
-    # a subset of the train part (train minus validation, or an explicit list)
-    from tdof20.dataset.reader import open_dataset
-    from tdof20.dataset.shards import pack_shard
-
-    path = out_run / "data" / f"{split}_{part}.h5"
-    if rank == 0 and not path.exists():
-        ds = open_dataset(dataset_root, cache_dir=cache_dir)
-        bop_split = split if ds.layout == "bop" else None
-        ds.render_restored(images, bop_split, show_progress=show)
-        with progress_bar(show) as bar:
-            task = bar.add_task(f"packing {split}/{part}", total=len(images))
-            pack_shard(images, ds, path, {"split": split, "part": part, "dataset": str(dataset_root.resolve()),
-                                          "layout": ds.layout},
-                       models_dir=ds.models_dir, progress_bar=lambda: bar.advance(task), split=bop_split)
-    return path
-
-
-TRAIN_PARTS = ("train", "train-val")
-
-
-def train_images(dataset_root: str | Path, split: str, part: str = "train",
-                 images: list[tuple[int, int]] | None = None) -> tuple[list[tuple[int, int]] | None, str]:
-    """The images a training takes, and the part's name for the run: (None, 'train') = the whole
-    train part (packed as `dataset pack` does); part 'train-val' = the train part minus the
-    validation part (tdof20.dataset.validation); ``images`` = exactly these (part 'images';
-    refused when one is outside the train part)."""
-    if images is not None:
-        images = sorted({(int(s), int(i)) for s, i in images})
-        if not images:
-            raise TdofError("the list of training images is empty", dataset_root)
-        whole = set(split_part_images(dataset_root, split, "train", "train on"))
-        outside = [im for im in images if im not in whole]
-        if outside:
-            raise TdofError(f"{len(outside)} of the {len(images)} training images are not in the {split} split's "
-                            f"train part (first: scene {outside[0][0]}, image {outside[0][1]})", dataset_root)
-        return images, "images"
-    if part not in TRAIN_PARTS:
-        raise TdofError(f"--part must be one of {', '.join(TRAIN_PARTS)}, got '{part}'")
-    if part == "train":
-        return None, "train"
-    from tdof20.dataset.validation import split_with_val
-
-    keep, val = split_with_val(dataset_root, split)
-    if not keep:
-        raise TdofError(f"the {split} split's train part minus its validation part is empty: nothing to train on",
-                        dataset_root)
-    return keep, "train-val"
-
-
-def images_digest(images: list[tuple[int, int]] | None) -> str | None:
-    if images is None:
-        return None
-    return hashlib.sha256(json.dumps([list(x) for x in images]).encode()).hexdigest()[:16]
-
-
-# --------------------------------------------------------------------------------------------
-# training
-
-
 # --------------------------------------------------------------------------------------------
 # training
 
@@ -628,12 +213,6 @@ class LossModule(torch.nn.Module):
         return total
 
 
-def to_device(batch: Mapping, dev: torch.device) -> dict:
-    """The tensors of a batch on ``dev`` (others as they are)."""
-    pin = dev.type == "cuda"
-    return {k: v.to(dev, non_blocking=pin) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-
-
 def _meta_json(meta) -> dict:
     d = meta.to_json()
     d["model_points"] = {k: [[round(float(x), 3) for x in p] for p in v] for k, v in d["model_points"].items()}
@@ -643,23 +222,25 @@ def _meta_json(meta) -> dict:
 _METHOD_DEFAULT = "method"
 
 
-def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: str = "hff6dof",
+def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: str = DEFAULT_METHOD,
           method_config=None, image_size: tuple[int, int] | None | str = _METHOD_DEFAULT, batch_size: int = 8,
           epochs: int = 20, lr: float = 1e-3, lr_schedule: str = "cosine", weight_decay: float = 1e-4,
-          depth_mode: str | None = None, fuse_stages: int | None = None, seg_head: bool | None = None,
-          device: str = "auto", amp: bool | None = None, num_workers: int = 2, max_steps: int | None = None,
-          seed: int = 0, backbone_weights: str | Path | None = None, shard: str | Path | None = None,
+          depth_mode: str | None = None, device: str = "auto", amp: bool | None = None, num_workers: int = 2,
+          max_steps: int | None = None, seed: int = 0, backbone_weights: str | Path | None = None,
+          shard: str | Path | None = None,
           save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None,
           part: str = "train", images: list[tuple[int, int]] | None = None,
-          stop_epoch: int | None = None) -> Path:
+          stop_epoch: int | None = None, method_options: Mapping | None = None, **options) -> Path:
     """Train (or resume training) ``method`` on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
-    method: a registered method (tdof20.methods.registry). method_config: its config (a dataclass,
-    a dict of its options, or None = its defaults); depth_mode ('raw' | 'filled' | 'restored', the
-    last privileged), fuse_stages, seg_head (HFF6DoF's ablation options) and backbone_weights (a
-    torchvision checkpoint for the method's ResNet) are shortcuts for options of that config (None:
-    as the config says; an option the method lacks is refused).
+    method: a registered method (tdof20.methods.registry; default the paper's). method_config: its
+    config (a dataclass, a dict of its options, or None = its defaults); method_options (a table,
+    nested tables for a nested config) and keyword ``options`` (e.g. ``fuse_stages=2``): options
+    of that config over it, checked as a TOML file's; depth_mode ('raw' | 'filled' | 'restored',
+    the last privileged) and backbone_weights (a torchvision checkpoint for the method's ResNet)
+    are shortcuts for options of that config (None: as the config says; an option the method
+    lacks is refused).
     image_size: (H, W) the images are resized to (colour by area, depth and labels by nearest
     neighbour, K scaled); 'method' = the method's default size; None = the dataset's own size.
     batch_size: images per optimiser step per process. epochs: passes over the training images in
@@ -685,21 +266,13 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     into ROOT/.cache/ (or ``cache_dir``) when the shard is packed (training targets use it; the
     input depth of every method is the sensor's, raw or filled, unless depth_mode says 'restored').
     """
-    from tdof20.dataset.shards import ShardDataset
-
-    rank, local_rank, world = _distributed()
+    rank, local_rank, world = distributed()
     try:  # the checks before any work
         m = get_method(method)
         dataset_root = Path(dataset_root)
         out_run = Path(out_run)
-        from tdof20.dataset.reader import open_dataset
         ds = open_dataset(dataset_root)  # the one "not a dataset" check
-        if ds.layout == "tdof20":
-            from tdof20.dataset.splits import SPLITS
-            if split not in SPLITS:
-                raise TdofError(f"--split must be one of {', '.join(SPLITS)}, got '{split}'")
-        else:
-            split = ds.check_split(split)
+        split = ds.check_train_split(split)
         if depth_mode is not None:
             check_depth_mode(depth_mode)
         if lr_schedule not in LR_SCHEDULES:
@@ -715,11 +288,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                             f"got {image_size}")
         if stop_epoch is not None and int(stop_epoch) < 1:
             raise TdofError(f"stop_epoch must be >= 1, got {stop_epoch}")
-        if fuse_stages is not None and not 1 <= int(fuse_stages) <= 5:
-            raise TdofError(f"--fuse-stages must be in 1..5, got {fuse_stages}")
-        cfg = make_method_config(m, method_config, depth_mode=depth_mode, fuse_stages=fuse_stages,
-                               seg_head=seg_head,
-                               backbone_weights=None if backbone_weights is None else str(backbone_weights))
+        cfg = make_method_config(m, method_config, {**(method_options or {}), **options}, depth_mode=depth_mode,
+                                 backbone_weights=None if backbone_weights is None else str(backbone_weights))
         if isinstance(image_size, str):
             if image_size != _METHOD_DEFAULT:
                 raise TdofError(f"image_size must be (H, W), None or '{_METHOD_DEFAULT}', got '{image_size}'")
@@ -729,7 +299,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if shard is not None and (part != "train" or images is not None):
             raise TdofError("--shard decides the training images: give it without --part or an image list", shard)
         if shard is None:
-            split_part_images(dataset_root, split, "train", "train on")
+            ds.part_frames(split, "train", "train on")
         subset, part = train_images(dataset_root, split, part, images) if shard is None else (None, "train")
 
         dev = select_device(device)
@@ -767,9 +337,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                      [int(image_size[0]), int(image_size[1])], "depth_mode": depth_mode_of(cfg), "split": split,
                      "part": part, "images_sha256": images_digest(subset), "classes": run_classes(saved), "train": {"batch_size": batch_size},
                      "method_config": m.config_to_data(cfg)}
-            if m.name == "hff6dof":
-                with torch.device("meta"):
-                    early["network"] = _network_table(m.build(cfg, saved_meta))
+            with torch.device("meta"):
+                early.update(m.run_record(m.build(cfg, saved_meta)))
             _check_same(saved, early, out_run / CONFIG)
             try:
                 ckpt_epoch, ckpt_step = int(ckpt["epoch"]), int(ckpt["step"])
@@ -795,7 +364,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             console.print("[yellow]mixed precision is for CUDA devices; training in float32")
         if main:
             out_run.mkdir(parents=True, exist_ok=True)
-        shard_path = _shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir, subset, part)
+        shard_path = shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir, subset, part)
         if dist is not None:
             dist.barrier(group=wait_group)
         data = ShardDataset(shard_path)
@@ -811,20 +380,19 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                             f"{world} processes: use fewer processes", shard_path)
 
         if resume:
-            from tdof20.methods.base import MethodMeta
             meta = MethodMeta(obj_ids=saved_meta.obj_ids, keypoints=saved_meta.keypoints,
                               diameters=saved_meta.diameters, symmetric=saved_meta.symmetric,
                               model_points=saved_meta.model_points, image_size=image_size)
-            if "meta" not in saved and ds.layout and set(meta.obj_ids) <= set(ds.obj_ids):
+            if "meta" not in saved and set(meta.obj_ids) <= set(ds.obj_ids):
                 # a run from before the interface recorded no model samples: take them from the dataset
                 meta = dataset_meta(ds, meta.obj_ids, image_size)
                 meta = MethodMeta(obj_ids=meta.obj_ids, keypoints=saved_meta.keypoints, diameters=meta.diameters,
                                   symmetric=meta.symmetric, model_points=meta.model_points, image_size=image_size)
         else:
-            meta = dataset_meta(ds, dataset_classes(ds.obj_ids, ds.layout), image_size)
+            meta = dataset_meta(ds, dataset_classes(ds.obj_ids, ds.uses_catalog_ids), image_size)
         torch.manual_seed(seed)
         net = m.build(cfg, meta)
-        options = dict(batch_size=batch_size, epochs=epochs, lr=lr, lr_schedule=lr_schedule,
+        train_options = dict(batch_size=batch_size, epochs=epochs, lr=lr, lr_schedule=lr_schedule,
                        weight_decay=weight_decay, amp=use_amp, num_workers=num_workers, max_steps=max_steps,
                        seed=seed, backbone_weights=None if backbone_weights is None else str(backbone_weights),
                        world_size=world, device=str(dev))
@@ -834,9 +402,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
                   "keypoints": keypoints_to_json(meta.keypoints), "classes": list(meta.obj_ids),
                   "objects": {str(o): ds.object_name(o) for o in meta.obj_ids if o in ds.models_info},
-                  "layout": ds.layout, "train": options}
-        if m.name == "hff6dof":
-            config["network"] = _network_table(net)
+                  "layout": ds.layout, "train": train_options, **m.run_record(net)}
         if resume:
             _check_same(saved, config, out_run / CONFIG)
             net.load_state_dict(ckpt["model"])
@@ -869,7 +435,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                 model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
             model = torch.nn.parallel.DistributedDataParallel(
                 model, device_ids=[local_rank] if dev.type == "cuda" else None,
-                find_unused_parameters=m.name != "hff6dof")
+                find_unused_parameters=m.ddp_find_unused_parameters)
 
         tdata = TransformedDataset(data, m.transform(cfg, meta, train=True))
         n = len(tdata)
@@ -896,7 +462,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             last_save[0] = time.perf_counter()
             if not main:
                 return
-            _save_atomic({"model": net.state_dict(), "optimizer": opt.state_dict(),
+            save_atomic({"model": net.state_dict(), "optimizer": opt.state_dict(),
                           "scaler": scaler.state_dict() if scaler.is_enabled() else None,
                           "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
                           "config": config}, ckpt_path)
@@ -945,7 +511,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                                         "(the last good checkpoint is kept)", out_run)
                     history.append(rec)
                     for k, v in rec.items():
-                        if k not in _NOT_LOSSES and math.isfinite(v):
+                        if k not in NOT_LOSSES and math.isfinite(v):
                             sums[k] = sums.get(k, 0.0) + v
                             counts[k] = counts.get(k, 0) + 1
                     bar.update(task, advance=global_bs,
@@ -988,8 +554,3 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if dist is not None and dist.is_initialized():
             dist.destroy_process_group()
     return out_run
-
-
-def _network_table(net) -> dict:
-    """An HFF6DoF network's "network" table (what runs before the interface recorded)."""
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in net.config.items()}

@@ -17,6 +17,7 @@ caches the result.
 from __future__ import annotations
 
 import functools
+import json
 import operator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,8 +29,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import cdist
 
 from tdof20.errors import TdofError
-from tdof20.formats.bop import model_path, write_model_mesh
-from tdof20.formats.io import write_json
+from tdof20.formats.bop_models import model_path, write_model_mesh
+from tdof20.formats.io import read_json, write_json
 from tdof20.geometry.sampling import sample_mesh_surface
 from tdof20.objects import shapes as S
 from tdof20.objects.keypoints import surface_keypoints
@@ -409,11 +410,6 @@ def export_models(out_dir: str | Path, obj_ids=None) -> Path:
     A folder holding an earlier export keeps the objects it has (their entries join the new ones);
     a models_info.json of other models (an entry the catalog does not write) is refused before
     anything is written, since its models would be overwritten."""
-    import json
-
-    from tdof20.errors import TdofError
-    from tdof20.formats.io import read_json
-
     out = Path(out_dir)
     ids = object_ids() if obj_ids is None else list(obj_ids)
     models = [get_object(i) for i in ids]  # unknown ids raise before anything is written

@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from tdof20.scoring import metrics as M
-from tdof20.scoring.scoring import ADD_THRESHOLD, AUC_MAX, PROJ_THRESHOLD, Evaluation
+from tdof20.scoring.evaluation import ADD_THRESHOLD, AUC_MAX, PROJ_THRESHOLD, Evaluation
 
 TABLES = {
     "add_s": f"Table 1 - ADD(S) accuracy (%): mean model-point distance < {ADD_THRESHOLD:.0%} of the diameter "

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tdof20.errors import TdofError
 from tdof20.formats import write_png
 from tdof20.geometry import transform_points
 from tdof20.objects import all_objects
@@ -47,8 +48,6 @@ def catalog_picture(tile: int = 240) -> np.ndarray:
 
 def render_frames(renderer: SimRenderer, out_dir: str | Path, arm: int, angles: list[float]) -> Path:
     """Render both phases at the given table angles into ``out_dir`` (PNGs + contact_sheet.png)."""
-    from tdof20.errors import TdofError
-
     r = renderer
     if not 0 <= arm < len(r.T_base_cams):
         raise TdofError(f"--arm must be in 0..{len(r.T_base_cams) - 1}, got {arm}")

@@ -9,11 +9,13 @@ every frame of both phases, the clutter). Resumable: frames already written are 
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from tdof20.formats import BopSceneWriter, read_json, read_png, read_session, write_json
+from tdof20.errors import TdofError
+from tdof20.formats import BopSceneWriter, RawSession, read_json, read_png, read_scene, read_session, write_json
 from tdof20.geometry import invert
 from tdof20.objects import export_models
 from tdof20.progress import progress
@@ -89,11 +91,6 @@ def oracle_scene(session_dir: str | Path, out_dir: str | Path, show_progress: bo
     (the exact depth of the scene with the objects opaque), masks, the three JSON files, the
     models in models/, and scene_info.json. It is the reference an annotation is measured against,
     and the way to build datasets before (or without) annotating."""
-    import shutil
-
-    from tdof20.errors import TdofError
-    from tdof20.formats import RawSession, read_scene, write_json
-
     session = RawSession.open(session_dir)
     if session.truth_dir is None or not (session.truth_dir / "scene_gt.json").exists():
         raise TdofError("has no truth/ (only simulated sessions do)", session_dir)

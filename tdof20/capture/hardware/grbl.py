@@ -13,18 +13,38 @@ Angles given to and returned by this driver are degrees; commands and status rep
 units. The feed ``feed_deg_per_s`` becomes ``F = feed_deg_per_s * units_per_degree * 60`` units
 per minute; GRBL clamps it to the axis's max rate (``$110`` for X; the driver warns when it does).
 
-Protocol, as GRBL 1.1 documents it: one command line at a time, each answered by ``ok`` or
-``error:N``; ``ALARM:N`` may arrive at any time (an alarm stops the driver: a person must act);
-the real-time byte ``?`` asks for a status report ``<Idle|MPos:12.000,0.000,0.000|FS:0,0>``
-(``WPos`` instead of ``MPos`` when ``$10=0``; ``WCO`` from time to time); ``!`` is a feed hold
-and ``0x18`` a soft reset. The driver works in the G54 work coordinate system plus a G92 offset
-set after homing, so that the table's reference is 0 degrees; it tracks the work coordinate
-offset (``$#`` and the ``WCO`` field) to turn machine positions into table angles.
+Protocol, as GRBL 1.1 documents it (codes, reports: :mod:`tdof20.capture.hardware.grbl_protocol`;
+reading and answering lines: :mod:`tdof20.capture.hardware.grbl_link`):
+one command line at a time, each answered by ``ok`` or ``error:N``; ``ALARM:N`` may arrive at any
+time (an alarm stops the driver: a person must act); the real-time byte ``?`` asks for a status
+report ``<Idle|MPos:12.000,0.000,0.000|FS:0,0>``; ``!`` is a feed hold and ``0x18`` a soft reset.
+The driver works in the G54 work coordinate system plus a G92 offset set after homing, so that the
+table's reference is 0 degrees; it tracks the work coordinate offset (``$#`` and the ``WCO``
+field) to turn machine positions into table angles.
 
 Every read has a deadline: a silent controller gives a :class:`HardwareError` naming the port and
 what was awaited. A command whose ``ok`` does not come is re-sent after a soft re-sync (an empty
 line, which GRBL answers with ``ok``), at most ``retries`` times; an acknowledged command is never
 re-sent (all commands sent are absolute, so a re-send of an unacknowledged one is harmless).
+
+What the firmware does after an alarm, and how the driver copes (checked against GRBL 1.1h
+compiled for the PC, grbl-sim):
+
+* After ``ALARM:N`` GRBL pauses 0.5 s and loses everything sent meanwhile (``?`` and ``$X``
+  included). A homing failure (``ALARM:6`` reset during homing, ``8``, ``9``) or a reset in motion
+  (``ALARM:3``) then resets the controller: the late ``ok`` of the ``$H`` (or of the line it was
+  executing), then the banner. Before it sends anything after an alarm the driver waits for that
+  banner (or 0.6 s) and drops the late answers, so none is taken for the answer to a later line.
+* ``ALARM:1`` (hard limit) and ``ALARM:2`` (soft limit) lock GRBL until a soft reset: it ignores
+  ``?`` and ``$X``. :meth:`GrblTurntable.status` then refuses at once; :meth:`~GrblTurntable.home`
+  and :meth:`~GrblTurntable.unlock` reset the controller (ctrl-x) first. A controller that answers
+  no ``?`` at connect (such a lock survives a close on a board that does not reset when its port
+  opens) gets one soft reset before the driver gives up on it.
+* GRBL answers no ``?`` while it homes, and bounds a homing cycle itself (``ALARM:9`` when the
+  switch is not found within 1.5 × ``$130``): :meth:`~GrblTurntable.home` waits at least GRBL's own
+  worst case from the settings (:func:`~tdof20.capture.hardware.grbl_timing.homing_worst_case_s`);
+  if even that passes it aborts the cycle (ctrl-x) so that no later line queues behind it.
+* GRBL 0.9 and older (another report format) are refused with their version named.
 
 Things to know on a real rig:
 
@@ -53,125 +73,25 @@ import os
 import re
 import threading
 import time
-from dataclasses import dataclass
-from typing import Callable
 
 import serial
 
+from tdof20.capture.hardware.grbl_link import _QUERY_RESEND_S, GrblLink, _NoAnswer
+from tdof20.capture.hardware.grbl_protocol import (ALARM_CODES, ERROR_CODES, HOMING_REQUIRED, GrblAlarm, GrblError,
+                                                   GrblStatus, describe_alarm, describe_error, parse_status)
+from tdof20.capture.hardware.grbl_timing import homing_worst_case_s
 from tdof20.capture.hardware.interfaces import HardwareError, Turntable
 
+__all__ = ["ALARM_CODES", "ERROR_CODES", "HOMING_REQUIRED", "GrblAlarm", "GrblError", "GrblStatus", "GrblTurntable",
+           "describe_alarm", "describe_error", "parse_status"]
+
 log = logging.getLogger(__name__)
-
-#: GRBL 1.1 alarm codes (``ALARM:N``), in words. 10+ are grblHAL's extensions.
-ALARM_CODES: dict[int, str] = {
-    1: "hard limit: a limit switch was triggered; the position is likely lost, home again",
-    2: "soft limit: the motion target exceeds the machine travel; the position is kept, unlocking is safe",
-    3: "abort during cycle: reset while in motion; the position is likely lost, home again",
-    4: "probe fail: the probe was not in the expected initial state",
-    5: "probe fail: the probe did not make contact within the programmed travel",
-    6: "homing fail: the homing cycle was reset",
-    7: "homing fail: the safety door was opened during homing",
-    8: "homing fail: pull-off did not clear the limit switch (increase $27 or check the wiring)",
-    9: "homing fail: the limit switch was not found within the search distance "
-       "(check $130 max travel, the switch and its wiring)",
-    10: "emergency stop (grblHAL)",
-    11: "homing required (grblHAL)",
-    12: "limit switch engaged (grblHAL)",
-}
-
-#: What an Alarm state without a code means: the power-up lock of a controller with homing on.
-HOMING_REQUIRED = "homing required: GRBL locks motion at power-up until it is homed ($H) or unlocked ($X)"
-
-#: GRBL 1.1 error codes (``error:N``), in words.
-ERROR_CODES: dict[int, str] = {
-    1: "expected command letter: a G-code word has no letter",
-    2: "bad number format: a G-code word has a missing or invalid value",
-    3: "invalid statement: the '$' system command is not recognised or supported",
-    4: "value < 0: a negative value where a positive one is expected",
-    5: "setting disabled: homing is not enabled in the settings ($22)",
-    6: "value < 3 usec: the minimum step pulse must be at least 3 microseconds",
-    7: "EEPROM read fail: settings restored to defaults",
-    8: "not idle: this '$' command needs GRBL to be idle",
-    9: "G-code lock: G-code is locked out during an alarm or a jog (home with $H or unlock with $X)",
-    10: "homing not enabled: soft limits need homing enabled",
-    11: "line overflow: too many characters in the line, not executed",
-    12: "step rate > 30 kHz: the setting makes the step rate too high",
-    13: "check door: the safety door is open",
-    14: "line length exceeded: build info or startup line too long for EEPROM",
-    15: "travel exceeded: the jog target exceeds the machine travel, jog ignored",
-    16: "invalid jog command: no '=' or a prohibited G-code",
-    17: "setting disabled: laser mode needs PWM output",
-    20: "unsupported command: an unsupported or invalid G-code in the block",
-    21: "modal group violation: more than one G-code of the same modal group",
-    22: "undefined feed rate: no feed rate set",
-    23: "G-code command in the block needs an integer value",
-    24: "more than one G-code command that needs axis words in the block",
-    25: "repeated G-code word in the block",
-    26: "no axis words in the block for a command that needs them",
-    27: "invalid line number",
-    28: "a G-code command is missing a required value word",
-    29: "G59.x work coordinate systems are not supported",
-    30: "G53 is only allowed with G0 and G1",
-    31: "axis words in a block where no command uses them",
-    32: "G2/G3 arcs need at least one in-plane axis word",
-    33: "invalid motion command target",
-    34: "invalid arc radius",
-    35: "G2/G3 arcs need at least one in-plane offset word",
-    36: "unused value words in the block",
-    37: "G43.1 dynamic tool length offset is not on the tool length axis",
-    38: "tool number greater than the maximum supported",
-}
 
 STATES = ("Idle", "Run", "Hold", "Jog", "Alarm", "Door", "Check", "Home", "Sleep")
 AXES = "XYZABC"
 _READ_SLICE_S = 0.02          # pyserial read timeout: the granularity of every deadline
-_QUERY_RESEND_S = 0.25        # resend "?" when a status report is late (lost byte, booting board)
 _QUIET_S = 0.15               # "nothing more is coming" after the wake-up / a reset
-
-_OK = "ok"
-_ERROR_RE = re.compile(r"^error:\s*(\d+)", re.I)
-_ALARM_RE = re.compile(r"^ALARM:\s*(\d+)", re.I)
-_BANNER_RE = re.compile(r"^Grbl(HAL)?\s+\S+\s+\[", re.I)
-_PARAM_RE = re.compile(r"^\[(G5[4-9]|G28|G30|G92|TLO):([^\]]*)\]$")
-_SETTING_RE = re.compile(r"^\$(\d+)=([-+0-9.]+)")
-
-
-def describe_alarm(code: int | None) -> str:
-    """``ALARM:N`` in words (``None``: the code-less power-up lock)."""
-    if code is None:
-        return HOMING_REQUIRED
-    return ALARM_CODES.get(code, f"unknown alarm {code} (see the controller's documentation)")
-
-
-def describe_error(code: int) -> str:
-    """``error:N`` in words; unknown codes keep their number."""
-    return ERROR_CODES.get(code, f"unknown error {code} (see the controller's documentation)")
-
-
-class GrblError(HardwareError):
-    """GRBL rejected a command with ``error:N`` (``code``). Not retryable: the same line fails again."""
-
-    def __init__(self, device: str, command: str, code: int):
-        self.code = code
-        self.command = command
-        super().__init__(device, f"GRBL rejected {command!r}: error:{code} ({describe_error(code)})",
-                         retryable=False)
-
-
-class GrblAlarm(HardwareError):
-    """GRBL is in an alarm (``code`` None: the power-up homing lock). A person must act."""
-
-    def __init__(self, device: str, code: int | None, context: str = ""):
-        self.code = code
-        head = f"ALARM:{code} ({describe_alarm(code)})" if code is not None else f"ALARM ({describe_alarm(None)})"
-        tail = (f"{context}; " if context else "") + (
-            "clear the cause, then home the table ($H, or home() / [turntable] home = true) "
-            "or unlock it with $X after checking it turns freely")
-        super().__init__(device, f"{head}; {tail}", retryable=False)
-
-
-class _NoAnswer(HardwareError):
-    """Nothing (useful) came back before a deadline."""
+_SILENT_RESET_S = 2.0         # at connect, a "?" unanswered this long: reset (a lock, or homing)
 
 
 def _locked(fn):
@@ -183,45 +103,7 @@ def _locked(fn):
     return wrapper
 
 
-@dataclass(frozen=True)
-class GrblStatus:
-    """A parsed real-time status report (positions in axis units)."""
-
-    state: str                                   # Idle, Run, Hold, Jog, Alarm, Door, Check, Home, Sleep
-    substate: int | None = None                  # Hold:0 (complete) / Hold:1 (decelerating), Door:N, ...
-    mpos: tuple[float, ...] | None = None        # machine position ($10=1, the default)
-    wpos: tuple[float, ...] | None = None        # work position ($10=0)
-    wco: tuple[float, ...] | None = None         # work coordinate offset, sent now and then
-    feed: float | None = None                    # current feed, units/min
-    raw: str = ""
-
-
-def parse_status(line: str) -> GrblStatus | None:
-    """Parse ``<Idle|MPos:12.000,0.000,0.000|FS:0,0>``; ``None`` if the line is not a report."""
-    line = line.strip()
-    if not (line.startswith("<") and line.endswith(">")) or len(line) < 3:
-        return None
-    fields = line[1:-1].split("|")
-    state, _, sub = fields[0].partition(":")
-    if not state or not state.isalpha():
-        return None
-    try:
-        substate = int(sub) if sub else None
-    except ValueError:
-        substate = None
-    values: dict = {}
-    for f in fields[1:]:
-        key, _, val = f.partition(":")
-        if key in ("MPos", "WPos", "WCO", "FS", "F"):
-            try:
-                values[key] = tuple(float(v) for v in val.split(","))
-            except ValueError:
-                return None
-    feed = values.get("FS", values.get("F", (None,)))[0]
-    return GrblStatus(state, substate, values.get("MPos"), values.get("WPos"), values.get("WCO"), feed, line)
-
-
-class GrblTurntable(Turntable):
+class GrblTurntable(GrblLink, Turntable):
     """A turntable on one axis of a GRBL 1.1 controller.
 
     ``port``: a serial device (``/dev/ttyUSB0``, ``COM3``) or a pyserial URL (``socket://host:23``
@@ -269,11 +151,16 @@ class GrblTurntable(Turntable):
         self._params: dict[str, tuple[float, ...]] = {}
         self.settings: dict[int, float] = {}
         self._alarm: int | None = None   # last ALARM:N seen
+        self._alarm_at: float | None = None   # when it came, until its aftermath (pause, late ok, banner) is read
+        self._critical = False           # ALARM:1/2: GRBL is deaf to all but a soft reset
+        self._homing = False             # a $H is running: GRBL answers no "?"
+        self._reset_context = ""         # why the controller was reset (for the message after it)
+        self.version: str | None = None  # from the banner
         self._lock_msg = False           # "[MSG:'$H'|'$X' to unlock]" seen
         self._collect_alarms = False     # record ALARM lines instead of raising (handshake, stop)
-        self._expect_reset = False       # a banner is expected (connect, after stop())
+        self._expect_reset = False       # a banner is expected (connect, stop(), the driver's resets)
         self._banner_seen = False
-        self._needs_resync = False       # after stop(): the controller was reset
+        self._needs_resync = False       # the controller was reset (stop(), an alarm, the driver): re-sync
         self._saved_wco: float | None = None
         self._reference_lost = False     # the controller reset by itself: home again
         self._io = threading.RLock()
@@ -304,13 +191,19 @@ class GrblTurntable(Turntable):
             raise HardwareError(self.device, self._open_problem(e), retryable=False) from e
         try:
             st = self._handshake()
+            self._check_version(st)
             if st.state in ("Run", "Jog", "Home", "Hold", "Door"):
                 st = self._wait_idle(st)
             if st.state == "Alarm":
                 code = self._alarm if self._alarm is not None else st.substate
+                what = None
+                if self._reset_context and code is None:
+                    what = ("it answered nothing until the driver reset it (ctrl-x): locked by a hard or soft "
+                            "limit alarm, or busy homing")
                 if not self.home_on_connect:
-                    raise GrblAlarm(self.device, code, "at connect")
-                log.warning("%s: ALARM at connect (%s); homing is planned", self.device, describe_alarm(code))
+                    raise GrblAlarm(self.device, code, "at connect", what=what)
+                log.warning("%s: ALARM at connect (%s); homing is planned", self.device,
+                            what or describe_alarm(code))
             else:
                 self._check_usable(st, "at connect")
             self._read_settings()
@@ -332,17 +225,35 @@ class GrblTurntable(Turntable):
 
     @_locked
     def home(self, timeout_s: float) -> None:
-        """``$H`` (homing cycle), then make the table's angle 0 (``G92`` if needed)."""
-        self._ready(allow_alarm=True)
-        deadline = time.monotonic() + timeout_s
+        """``$H`` (homing cycle), then make the table's angle 0 (``G92`` if needed). A controller
+        locked by ``ALARM:1``/``2`` is reset first. The wait for the cycle is ``timeout_s`` or GRBL's
+        own worst case from its settings, whichever is longer; past it the cycle is aborted."""
+        self._ready(allow_alarm=True, reset_if_locked=True)
+        wait = float(timeout_s)
+        bound = self._homing_bound_s()
+        if bound is not None and bound > wait:
+            log.info("%s: homing may take up to %.0f s (GRBL's own limit from $130-$132, $24-$27): waiting that "
+                     "long instead of %g s; to home faster lower $130 (max travel) or raise $25 (seek rate)",
+                     self.device, bound, wait)
+            wait = bound
         self._alarm = None
+        self._saved_wco = None                # homing sets the reference anew
+        self._homing = True                   # until its answer, an alarm or a reset
         try:
-            self._command("$H", timeout_s=timeout_s, resend=False)
+            self._command("$H", timeout_s=wait, resend=False)
         except GrblError as e:
+            self._homing = False
             if e.code != 5:
                 raise
             log.warning("%s: homing is disabled on the controller ($22=0): taking the current position "
                         "as 0 degrees", self.device)
+        except _NoAnswer:
+            self._abort_homing()
+            raise HardwareError(self.device, f"homing did not finish within {wait:.0f} s "
+                                f"({self._homing_limits(bound)}); the cycle was aborted (reset): check the home "
+                                "switch and its wiring, then home again", retryable=False) from None
+        self._homing = False
+        deadline = time.monotonic() + self.timeout_s
         self._set_modes(deadline)
         self._refresh_wco(deadline)
         st = self._query_status(deadline)
@@ -363,12 +274,12 @@ class GrblTurntable(Turntable):
         if not math.isfinite(angle_deg):
             raise HardwareError(self.device, f"cannot move to {angle_deg!r} deg", retryable=False)
         t0 = time.monotonic()
+        self._ready(context=f"cannot move to {angle_deg:g} deg")
         deadline = t0 + float(timeout_s)
-        self._ready()
         if self._reference_lost:
             raise HardwareError(self.device, "the controller was reset: the angle reference is lost, "
                                 "home the table before moving it", retryable=False)
-        if self._alarm is not None:           # GRBL is locked (and deaf after a limit) until $H / $X / reset
+        if self._alarm is not None:           # GRBL is locked until $H / $X
             raise GrblAlarm(self.device, self._alarm, f"not cleared, cannot move to {angle_deg:g} deg")
         target = angle_deg * self.units_per_degree
         tol = self._tolerance_units()
@@ -410,30 +321,35 @@ class GrblTurntable(Turntable):
 
     @_locked
     def status(self) -> GrblStatus:
-        """A fresh status report."""
-        self._ready(allow_alarm=True)
+        """A fresh status report (a controller locked by ``ALARM:1``/``2`` sends none: GrblAlarm)."""
+        self._ready(allow_alarm=True, context="no status report while locked")
         return self._query_status(time.monotonic() + self.timeout_s)
 
     @_locked
     def unlock(self) -> None:
-        """``$X``: leave an alarm without homing (the operator checked the table)."""
-        self._ready(allow_alarm=True)
-        self._command("$X")
+        """``$X``: leave an alarm without homing (the operator checked the table); a controller locked
+        by ``ALARM:1``/``2`` is reset first. The machine position survives; the G92 offset is re-applied."""
+        self._ready(allow_alarm=True, reset_if_locked=True)
+        deadline = time.monotonic() + self.timeout_s
+        self._command("$X", deadline=deadline)
         self._alarm = None
-        self._set_modes()
-        self._refresh_wco()
+        self._set_modes(deadline)
+        self._refresh_wco(deadline)
+        self._restore_offset(deadline)
 
     @_locked
     def command(self, line: str, timeout_s: float | None = None) -> None:
         """Send one raw line and wait for its ``ok`` (for manual use; no re-send)."""
-        self._ready(allow_alarm=True)
+        self._ready(allow_alarm=True, context=f"cannot send {line.strip()!r}")
         self._command(line.strip(), timeout_s=timeout_s, resend=False)
 
     def stop(self) -> None:
         """Feed hold ``!`` now, wait (at most ``timeout_s``) for the table to stop, then soft reset
         (0x18); never raises. Callable from another thread: a running move_to()/home() there ends with
         a HardwareError. A reset after a completed hold keeps the position and the next call re-applies
-        the modes and the G92 offset; a reset in motion puts GRBL in ALARM:3 (home again)."""
+        the modes and the G92 offset; a reset in motion puts GRBL in ALARM:3 (home again), one during
+        homing in ALARM:6. Right after an alarm it first waits out GRBL's 0.5 s pause (a reset sent in
+        it is lost)."""
         if self._ser is None:
             return
         self._stop_requested.set()
@@ -446,7 +362,12 @@ class GrblTurntable(Turntable):
         self._collect_alarms = True
         try:
             try:
-                if got and self._alarm is None and not self._needs_resync:
+                if got:
+                    self._settle()            # a reset sent in an alarm's pause would be lost
+            except Exception as e:  # noqa: BLE001 - best effort
+                log.debug("%s: after the alarm: %s", self.device, e)
+            try:
+                if got and self._alarm is None and not self._needs_resync and not self._homing:
                     end = time.monotonic() + self.timeout_s
                     while time.monotonic() < end:
                         st = self._query_status(end)
@@ -461,6 +382,8 @@ class GrblTurntable(Turntable):
                     self._saved_wco = self._wco
                 self._expect_reset = True
                 self._needs_resync = True
+                self._reset_context = "after stop()"
+                self._critical = False
                 self._write(b"\x18")
                 if got:
                     self._drain_quiet(0.05, time.monotonic() + 0.3)
@@ -493,18 +416,32 @@ class GrblTurntable(Turntable):
         self._responses.clear()
         self._alarm, self._lock_msg, self._banner_seen = None, False, False
         self._needs_resync, self._reference_lost, self._saved_wco = False, False, None
+        self._alarm_at, self._critical, self._homing, self._reset_context = None, False, False, ""
+        self.version = None
         self._collect_alarms, self._expect_reset = True, True
+        start = time.monotonic()
+        reset_at = start + min(_SILENT_RESET_S, self.timeout_s / 2)
         try:
             self._write(b"\r\n\r\n")
-            next_query = time.monotonic() + 0.1
+            next_query = start + 0.1
             self._fresh_status = False
             banner_asked = False
             while not self._fresh_status:
                 now = time.monotonic()
                 if now >= deadline:
+                    after = ", also after a soft reset" if self._reset_context else ""
                     raise _NoAnswer(self.device, f"no answer within {self.timeout_s:g} s: waited for GRBL's "
-                                    f"startup banner or a status report (is this the controller's port, "
+                                    f"startup banner or a status report{after} (is this the controller's port, "
                                     f"{self.baudrate} baud, and is it powered?)")
+                if now >= reset_at and not self._reset_context and (not self._banner_seen or self._critical):
+                    # GRBL answers no "?" while locked by ALARM:1/2 (it outlives a close on a board that
+                    # does not reset when opened) or while homing: a soft reset ends both
+                    log.warning("%s: no answer to '?' within %.1f s: resetting the controller (ctrl-x)",
+                                self.device, now - start)
+                    self._reset_context = "after the reset at connect"
+                    self._banner_seen = False
+                    self._write(b"\x18")
+                    next_query = now + 0.1
                 if now >= next_query or (self._banner_seen and not banner_asked):
                     banner_asked = banner_asked or self._banner_seen
                     self._write(b"?")
@@ -514,20 +451,95 @@ class GrblTurntable(Turntable):
         finally:
             self._collect_alarms, self._expect_reset = False, False
         self._responses.clear()
+        self._alarm_at, self._needs_resync, self._saved_wco = None, False, None   # connect() sets up anew
         st = self._status
         assert st is not None
         if st.state != "Alarm" and self._alarm is not None:
             self._alarm = None                      # a reported alarm that was cleared since
         return st
 
-    def _ready(self, allow_alarm: bool = False) -> None:
+    def _check_version(self, st: GrblStatus) -> None:
+        """Refuse GRBL 0.9 and older (another report format, errors in words), naming the version."""
+        old = self.version is not None and re.match(r"^0\.|^1\.0", self.version)
+        if st.legacy or old:
+            seen = f"GRBL {self.version}" if self.version else f"GRBL 0.9 or older (status report {st.raw!r})"
+            raise HardwareError(self.device, f"the controller runs {seen}; this driver speaks GRBL 1.1: flash "
+                                "GRBL 1.1h onto the board (github.com/gnea/grbl, e.g. with the Arduino IDE)",
+                                retryable=False)
+
+    def _ready(self, allow_alarm: bool = False, reset_if_locked: bool = False, context: str = "") -> None:
+        """Before a public call talks to GRBL: read an alarm's aftermath; a controller locked by
+        ALARM:1/2 is reset (``reset_if_locked``) or refused; after a reset, re-sync."""
         if self._ser is None:
             raise HardwareError(self.device, "not connected: call connect() first", retryable=False)
+        self._settle()
+        if self._critical:
+            if not reset_if_locked:
+                raise GrblAlarm(self.device, self._alarm, context, locked=True)
+            self._reset_locked()
         if self._needs_resync:
             self._resync_after_reset(allow_alarm)
 
+    def _reset_locked(self) -> None:
+        """Soft reset (ctrl-x) of a controller locked by ALARM:1/2; afterwards it is in the alarm lock,
+        the machine position kept, the G92 offset gone (re-applied by unlock())."""
+        deadline = time.monotonic() + self.timeout_s
+        log.warning("%s: resetting the controller (ctrl-x) to leave ALARM:%s", self.device, self._alarm)
+        if not self._needs_resync:
+            self._saved_wco = self._wco
+        self._collect_alarms = self._expect_reset = True
+        self._banner_seen = False
+        try:
+            self._write(b"\x18")
+            self._wait(lambda: self._banner_seen, deadline, "GRBL's banner after a reset (ctrl-x)")
+            self._drain_quiet(0.05, min(deadline, time.monotonic() + 0.3))
+        finally:
+            self._collect_alarms = self._expect_reset = False
+        self._responses.clear()
+        self._critical, self._alarm_at = False, None
+        self._needs_resync, self._reset_context = True, f"after the reset that ended ALARM:{self._alarm}"
+
+    def _abort_homing(self) -> None:
+        """A homing cycle that outlived its wait: reset (ALARM:6, then its late ``ok`` and the banner)
+        so that no later line queues behind it; best effort."""
+        try:
+            self._expect_reset = True
+            self._alarm_at = time.monotonic()
+            self._write(b"\x18")
+            self._settle()
+        except HardwareError as e:
+            log.debug("%s: aborting the homing cycle: %s", self.device, e)
+        finally:
+            self._expect_reset = False
+            self._homing = False
+        self._needs_resync, self._reset_context = True, "after the aborted homing"
+
+    def _homing_bound_s(self) -> float | None:
+        """GRBL's own worst case for ``$H`` from the settings read at connect (``None``: unknown)."""
+        if not all(k in self.settings for k in (24, 25, 27, 130)):
+            return None
+        return 1.25 * homing_worst_case_s(self.settings) + 2.0
+
+    def _homing_limits(self, bound: float | None) -> str:
+        if bound is None:
+            return ("GRBL's homing settings are unknown: allow 1.5 x $130 (max travel) at $25 (seek rate) per axis, "
+                    "or raise [turntable] timeout_s")
+        s = self.settings
+        return (f"GRBL's own limit from $130={s[130]:g} (max travel), $25={s[25]:g} (seek rate), "
+                f"$24={s[24]:g}, $27={s[27]:g} is {bound:.0f} s")
+
+    def _restore_offset(self, deadline: float) -> None:
+        """Re-apply the G92 offset a soft reset removed (the machine position survives it)."""
+        if self._saved_wco is not None and abs(self._wco - self._saved_wco) > 1e-6:
+            st = self._query_status(deadline)
+            mpos = self._work_units(st) + self._wco
+            self._command(f"G92 {self.axis}{mpos - self._saved_wco:.4f}", deadline=deadline)
+            self._refresh_wco(deadline)
+        self._saved_wco = None
+
     def _resync_after_reset(self, allow_alarm: bool) -> None:
-        """After stop()'s soft reset: swallow the banner, re-apply modes and the G92 offset."""
+        """After a soft reset (stop(), an alarm's, the driver's): swallow the banner, re-apply modes and
+        the G92 offset (kept for unlock() while GRBL stays in the alarm lock)."""
         deadline = time.monotonic() + self.timeout_s
         self._collect_alarms, self._expect_reset = True, True
         try:
@@ -542,16 +554,11 @@ class GrblTurntable(Turntable):
             if allow_alarm:
                 return
             raise GrblAlarm(self.device, self._alarm if self._alarm is not None else st.substate,
-                            "after stop()")
+                            self._reset_context)
         self._alarm = None
         self._set_modes(deadline)
         self._refresh_wco(deadline)
-        if self._saved_wco is not None and abs(self._wco - self._saved_wco) > 1e-6:
-            st = self._query_status(deadline)
-            mpos = self._work_units(st) + self._wco
-            self._command(f"G92 {self.axis}{mpos - self._saved_wco:.4f}", deadline=deadline)
-            self._refresh_wco(deadline)
-        self._saved_wco = None
+        self._restore_offset(deadline)
 
     def _wait_idle(self, st: GrblStatus) -> GrblStatus:
         """At connect the controller is still busy (a move of a previous run): wait for it."""
@@ -620,193 +627,6 @@ class GrblTurntable(Turntable):
             raise HardwareError(self.device, f"the controller reports {len(pos)} axes, no {self.axis} axis",
                                 retryable=False)
         return pos[self._i] if st.wpos is not None else pos[self._i] - self._wco
-
-    def _command(self, line: str, timeout_s: float | None = None, resend: bool = True,
-                 deadline: float | None = None) -> None:
-        """Send one line and wait for its answer, all within the deadline (``timeout_s`` from now)."""
-        start = now = time.monotonic()
-        end = now + (self.timeout_s if timeout_s is None else float(timeout_s))
-        if deadline is not None:
-            end = min(end, deadline)
-        self._pump(now)                       # handle whatever is already there
-        if self._responses:
-            log.debug("%s: dropping %d stale answers", self.device, len(self._responses))
-            self._responses.clear()
-        attempts = self.retries + 1 if resend else 1
-        data = (line + "\n").encode("ascii")
-        for attempt in range(attempts):
-            self._write(data)
-            now = time.monotonic()
-            slot_end = now + max(end - now, 0.0) / (attempts - attempt)
-            try:
-                self._wait(lambda: bool(self._responses), slot_end, f"'ok' to {line!r}")
-                break
-            except _NoAnswer:
-                if attempt == attempts - 1:
-                    raise _NoAnswer(self.device, f"no answer within {end - start:.3g} s: waited for 'ok' to "
-                                    f"{line!r} ({attempts} tries; cable, power, or a reset?)") from None
-                log.warning("%s: no 'ok' to %r, re-syncing (try %d of %d)", self.device, line,
-                            attempt + 2, attempts)
-                if self._resync(end, line):
-                    break                     # the answer came late: acknowledged, never re-sent
-        code = self._responses.popleft()
-        if code is not None:
-            raise GrblError(self.device, line, code)
-
-    def _resync(self, deadline: float, line: str) -> bool:
-        """Soft re-sync after a missing answer. True if the original line's answer arrived late."""
-        try:
-            self._wait(lambda: bool(self._responses), min(deadline, time.monotonic() + 0.1), "a late answer")
-            return True
-        except _NoAnswer:
-            pass
-        self._write(b"\n")                    # GRBL answers an empty line with "ok"
-        self._wait(lambda: bool(self._responses), deadline, f"'ok' to a re-sync line after {line!r}")
-        self._pump(min(deadline, time.monotonic() + 0.05), until=lambda: len(self._responses) >= 2)
-        if len(self._responses) >= 2:         # the first answer was the original line's
-            first = self._responses.popleft()
-            self._responses.clear()
-            self._responses.append(first)
-            return True
-        self._responses.clear()               # that "ok" was the re-sync's: re-send the line
-        return False
-
-    def _query_status(self, deadline: float, what: str = "a status report") -> GrblStatus:
-        self._fresh_status = False
-        start = time.monotonic()
-        while True:
-            self._write(b"?")
-            now = time.monotonic()
-            try:
-                self._wait(lambda: self._fresh_status, min(deadline, now + _QUERY_RESEND_S), what)
-                assert self._status is not None
-                return self._status
-            except _NoAnswer:
-                if time.monotonic() >= deadline:
-                    raise _NoAnswer(self.device, f"no answer within {max(deadline - start, 0):.3g} s: "
-                                    f"waited for {what}") from None
-
-    def _wait(self, pred: Callable[[], bool], deadline: float, what: str) -> None:
-        start = time.monotonic()
-        self._pump(deadline, until=pred)
-        if not pred():
-            raise _NoAnswer(self.device, f"no answer within {time.monotonic() - start:.3g} s: waited for {what}")
-
-    def _pump(self, deadline: float, until: Callable[[], bool] | None = None) -> None:
-        """Read and handle lines until ``until()`` holds or the deadline passes."""
-        while True:
-            if self._stop_requested.is_set():
-                raise HardwareError(self.device, "interrupted by stop()")
-            self._handle_buffered()
-            if until is not None and until():
-                return
-            if time.monotonic() >= deadline:
-                return
-            self._read_some()
-
-    def _drain_quiet(self, quiet_s: float, deadline: float) -> None:
-        """Read until nothing arrives for ``quiet_s`` (or the deadline)."""
-        last = time.monotonic()
-        while True:
-            self._handle_buffered()
-            now = time.monotonic()
-            if now >= deadline or now - last >= quiet_s:
-                return
-            if self._read_some():
-                last = time.monotonic()
-
-    def _read_some(self) -> int:
-        ser = self._ser
-        if ser is None:
-            raise HardwareError(self.device, "not connected", retryable=False)
-        try:
-            n = ser.in_waiting
-            data = ser.read(n if n > 0 else 1)
-        except (serial.SerialException, OSError) as e:
-            raise HardwareError(self.device, f"serial read failed: {e}") from e
-        if data:
-            self._buf += data
-            if len(self._buf) > 65536 and b"\n" not in self._buf:
-                del self._buf[:-1024]         # garbage without line ends (wrong baud rate)
-        return len(data)
-
-    def _write(self, data: bytes) -> None:
-        ser = self._ser
-        if ser is None:
-            raise HardwareError(self.device, "not connected", retryable=False)
-        try:
-            ser.write(data)
-        except serial.SerialTimeoutException as e:
-            raise HardwareError(self.device, f"serial write timed out after {self.timeout_s:g} s") from e
-        except (serial.SerialException, OSError) as e:
-            raise HardwareError(self.device, f"serial write failed: {e}") from e
-
-    def _handle_buffered(self) -> None:
-        while True:
-            nl = self._buf.find(b"\n")
-            if nl < 0:
-                return
-            raw = bytes(self._buf[:nl])
-            del self._buf[:nl + 1]
-            text = raw.decode("ascii", "replace").strip()
-            if text:
-                self._handle(text)
-
-    def _handle(self, line: str) -> None:
-        if line == _OK:
-            self._responses.append(None)
-            return
-        m = _ERROR_RE.match(line)
-        if m:
-            self._responses.append(int(m.group(1)))
-            return
-        if line.startswith("<"):
-            st = parse_status(line)
-            if st is None:
-                log.debug("%s: unparsable status %r", self.device, line)
-                return
-            if st.wco is not None and len(st.wco) > self._i:
-                self._wco = st.wco[self._i]
-            self._status, self._fresh_status = st, True
-            return
-        m = _ALARM_RE.match(line)
-        if m:
-            self._alarm = int(m.group(1))
-            log.warning("%s: %s", self.device, line)
-            if not self._collect_alarms:
-                raise GrblAlarm(self.device, self._alarm)
-            return
-        if _BANNER_RE.match(line):
-            self._banner_seen = True
-            if not self._expect_reset:
-                self._reference_lost = True
-                self._needs_resync = True
-                self._saved_wco = None
-                raise HardwareError(self.device, f"the controller reset by itself ({line!r}: power, USB or a "
-                                    "reset button): the angle reference is lost, home the table again",
-                                    retryable=False)
-            return
-        m = _PARAM_RE.match(line)
-        if m:
-            try:
-                self._params[m.group(1)] = tuple(float(v) for v in m.group(2).split(":")[0].split(","))
-            except ValueError:
-                pass
-            return
-        m = _SETTING_RE.match(line)
-        if m:
-            try:
-                self.settings[int(m.group(1))] = float(m.group(2))
-            except ValueError:
-                pass
-            return
-        if line.startswith("[MSG:"):
-            if "unlock" in line.lower():
-                self._lock_msg = True
-            log.info("%s: %s", self.device, line)
-            return
-        log.debug("%s: ignored %r", self.device, line)
-
 
 # ---------------------------------------------------------------------- manual smoke test
 

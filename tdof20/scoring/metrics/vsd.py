@@ -1,0 +1,254 @@
+"""BOP19's Visible Surface Discrepancy (VSD; bop_toolkit ``pose_error.py``, ``eval_calc_errors.py``)
+and the depth renderer it needs.
+
+* Reference, one pose: :func:`vsd_from_depths` (one error per tau, from full-frame depths;
+  :meth:`DepthRenderer.render` renders them by ray casting).
+* Fast, many poses of one object: :func:`vsd_batch` casts rays only inside each pose's footprint
+  (the projected convex hull, :meth:`DepthRenderer.footprints`) and equals the reference on full
+  frames bit for bit (the same rays).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from tdof20.scoring.metrics.reference import _Ks, _poses
+
+VSD_DELTA = 15.0  # mm: tolerance of the visibility test
+VSD_TAUS = np.arange(0.05, 0.51, 0.05)  # misalignment tolerances, fractions of the diameter
+VSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # correctness thresholds of the VSD error
+
+
+def ray_norms(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera rays (x, y, 1) = K^-1 (u, v, 1) through pixel centres (u, v) (float64), and |(x, y, 1)|."""
+    K = np.asarray(K, np.float64)
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return x, y, np.sqrt(x * x + y * y + 1.0)
+
+
+def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Depth (H,W) along the optical axis -> distance from the camera centre (float64)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return depth.astype(np.float64) * ray_norms(K, u, v)[2]
+
+
+def vsd_from_depths(depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.ndarray, K: np.ndarray,
+                    diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS) -> np.ndarray:
+    """Visible Surface Discrepancy for each tau (T,), BOP19 form (step cost, normalised by the
+    diameter): depths (H,W) in mm, 0 = none; the test depth's missing pixels count as visible.
+    V_g = {d_g > 0 and (d_g - d_test <= delta or d_test = 0)}, V_e = {d_e > 0 and (d_e - d_test <=
+    delta or d_test = 0 or V_g)} (d: distances from the camera centre); e = (#{V_g & V_e with
+    |d_g - d_e| / diameter >= tau} + #(V_g | V_e) - #(V_g & V_e)) / #(V_g | V_e), 1 if the union is empty."""
+    dt, dg, de = (distance_image(d, K) for d in (depth_test, depth_gt, depth_est))
+    vg = (dg > 0) & (((dg.astype(np.float32) - dt.astype(np.float32)) <= delta) | (dt == 0))
+    ve = (de > 0) & (((de.astype(np.float32) - dt.astype(np.float32)) <= delta) | (dt == 0))
+    ve |= vg & (de > 0)
+    inter, union = vg & ve, vg | ve
+    n_union = int(union.sum())
+    if n_union == 0:
+        return np.ones(len(taus))
+    dist = np.abs(dg[inter] - de[inter]) / diameter
+    comp = n_union - int(inter.sum())
+    return np.array([(int((dist >= tau).sum()) + comp) / n_union for tau in taus])
+
+
+class DepthRenderer:
+    """Depth images of one object model by ray casting (open3d RaycastingScene, built once in
+    the model frame; the rays move into the model frame). Pixel centres at integer (u, v); depth
+    along the optical axis in mm, 0 where the ray misses."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        # lazy: open3d (and tdof20.geometry.raycast, which imports it at top level)
+        from tdof20.geometry.raycast import convex_hull_points
+        from tdof20.o3d import o3d
+
+        V = np.asarray(vertices, np.float64)
+        F = np.asarray(faces, np.int64)
+        if len(F) == 0:
+            raise ValueError("a triangle mesh is needed to render depth")
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+        try:
+            self.hull = np.asarray(convex_hull_points(V, F), np.float64)
+        except Exception:  # degenerate (flat) meshes: every vertex bounds the silhouette
+            self.hull = V
+        self._o3d = o3d
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """t of the first hit of rays (model frame, float32 (n,3) each); 0 where none."""
+        if len(origins) == 0:
+            return np.zeros(0, np.float32)
+        rays = np.empty((len(origins), 6), np.float32)
+        rays[:, :3] = origins
+        rays[:, 3:] = dirs
+        return self.cast_rays(rays)
+
+    def cast_rays(self, rays: np.ndarray) -> np.ndarray:
+        """t of the first hit of rays (n,6) float32 (origin, direction; model frame); 0 where none."""
+        if len(rays) == 0:
+            return np.zeros(0, np.float32)
+        t = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, np.float32)))
+        t = t["t_hit"].numpy()
+        t[~np.isfinite(t)] = 0.0
+        return t
+
+    def render(self, R, t, K, width: int, height: int) -> np.ndarray:
+        """(height, width) float32 depth of the model at pose (R, t): every pixel cast."""
+        v, u = np.mgrid[0:height, 0:width].reshape(2, -1).astype(np.float64)
+        x, y, _ = ray_norms(K, u, v)
+        R = np.asarray(R, np.float64)
+        t = np.asarray(t, np.float64).reshape(3)
+        d = np.empty((len(x), 3), np.float32)
+        for i in range(3):  # R^T (x, y, 1): the rays in the model frame
+            d[:, i] = x * R[0, i] + y * R[1, i] + R[2, i]
+        o = np.broadcast_to((-R.T @ t).astype(np.float32), d.shape)
+        return self.cast(o, d).reshape(height, width)
+
+
+    def footprints(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int):
+        """Where the model at poses (R, t) (B,...) can be seen: (boxes (B,4) int [v0, v1) x [u0, u1)
+        clipped to the image (empty when v0 >= v1 or u0 >= u1), polygons: per pose the convex hull
+        (k,2) int32 (u, v) of the projected hull vertices, or None for the whole box). A pixel
+        whose centre lies more than a pixel outside the polygon cannot be hit; poses whose hull
+        reaches depth <= 1 mm get the whole image and no polygon."""
+        X = np.einsum("bij,nj->bni", R, self.hull) + t[:, None, :]
+        H = np.einsum("bij,bnj->bni", K, X)
+        z = X[..., 2]
+        near = (z <= 1.0).any(axis=1)  # the projection is unbounded: cast everything
+        gone = (z <= 0.0).all(axis=1)  # rays (depth > 0) cannot reach it: nothing to see
+        zz = np.where(z > 0, H[..., 2], 1.0)
+        u, v = H[..., 0] / zz, H[..., 1] / zz
+        out = np.stack([np.floor(v.min(1)) - 2, np.ceil(v.max(1)) + 3,
+                        np.floor(u.min(1)) - 2, np.ceil(u.max(1)) + 3], axis=1)
+        lim = np.array([height, height, width, width], np.float64)
+        out = np.clip(out, 0, lim)
+        out[near] = [0, height, 0, width]
+        out[gone] = 0
+        boxes = out.astype(np.int64)
+        big = 1e6  # beyond this the polygon would overflow int32; the box alone is used
+        skip = near | (boxes[:, 0] >= boxes[:, 1]) | (boxes[:, 2] >= boxes[:, 3]) | \
+            (np.abs(u).max(axis=1) > big) | (np.abs(v).max(axis=1) > big)
+        uv = np.rint(np.stack([np.where(skip[:, None], 0, u), np.where(skip[:, None], 0, v)], axis=2)).astype(np.int32)
+        polys = [None if skip[b] else cv2.convexHull(uv[b]).reshape(-1, 2) for b in range(len(R))]
+        return boxes, polys
+
+    def boxes(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+        """The boxes of :meth:`footprints`."""
+        return self.footprints(R, t, K, width, height)[0]
+
+
+def _footprint_pixels(poly, box, U0: int, V0: int, W: int):
+    """(ys, xs) local to the box origin (U0, V0) of the pixels of ``box`` that the polygon (grown by
+    a 3-pixel-wide outline) covers, and their flat index in a W-wide raster at (U0, V0)."""
+    v0, v1, u0, u1 = (int(x) for x in box)
+    h, w = v1 - v0, u1 - u0
+    if poly is None:
+        ys, xs = np.divmod(np.arange(h * w), w)
+    else:
+        m = np.zeros((h, w), np.uint8)
+        q = (poly - np.array([u0, v0], np.int32)).reshape(-1, 1, 2)
+        cv2.fillConvexPoly(m, q, 1)
+        cv2.polylines(m, [q], True, 1, 3)
+        ys, xs = np.nonzero(m)
+    ys = ys + (v0 - V0)
+    xs = xs + (u0 - U0)
+    return ys, xs, ys * W + xs
+
+
+def vsd_batch(renderer: DepthRenderer, R_est, t_est, R_gt, t_gt, K, depth_test: np.ndarray, image: np.ndarray,
+              diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS, max_rays: int = 1 << 20) -> np.ndarray:
+    """VSD (B,T) of B poses of one object, exactly :func:`vsd_from_depths` on full renders, but
+    rendering only where it matters: per pose each render is cast inside the projected convex hull
+    of the model (grown by a pixel, :meth:`DepthRenderer.footprints`; no other pixel can be hit),
+    and poses whose footprints' boxes do not meet have an empty intersection, so VSD 1 for every
+    tau, without rendering. ``depth_test`` (n,H,W) float32 mm test depths, ``image`` (B,) the
+    index of each pose's test image."""
+    Re, te = _poses(R_est, t_est)
+    Rg, tg = _poses(R_gt, t_gt)
+    Ks = np.ascontiguousarray(_Ks(K, len(Re)))
+    taus = np.asarray(taus, np.float64)
+    B, T = len(Re), len(taus)
+    h, w = depth_test.shape[1:]
+    out = np.ones((B, T))
+    if B == 0:
+        return out
+    be, pe = renderer.footprints(Re, te, Ks, w, h)
+    bg, pg = renderer.footprints(Rg, tg, Ks, w, h)
+    meet = (np.maximum(be[:, 0], bg[:, 0]) < np.minimum(be[:, 1], bg[:, 1])) & \
+           (np.maximum(be[:, 2], bg[:, 2]) < np.minimum(be[:, 3], bg[:, 3]))
+    todo = np.flatnonzero(meet)
+    area = (be[:, 1] - be[:, 0]) * (be[:, 3] - be[:, 2]) + (bg[:, 1] - bg[:, 0]) * (bg[:, 3] - bg[:, 2])
+    start = 0
+    while start < len(todo):  # chunks of about max_rays rays
+        cum = np.cumsum(area[todo[start:]])
+        stop = start + max(1, int(np.searchsorted(cum, max_rays, side="right")))
+        idx = todo[start:stop]
+        start = stop
+        out[idx] = _vsd_lists(renderer, Re[idx], te[idx], Rg[idx], tg[idx], Ks[idx], be[idx], bg[idx],
+                              [pe[i] for i in idx], [pg[i] for i in idx], depth_test, image[idx], diameter,
+                              delta, taus)
+    return out
+
+
+def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, diameter, delta, taus):
+    n = len(Re)
+    V0 = np.minimum(be[:, 0], bg[:, 0])
+    U0 = np.minimum(be[:, 2], bg[:, 2])
+    W = np.maximum(be[:, 3], bg[:, 3]) - U0
+    Hh = np.maximum(be[:, 1], bg[:, 1]) - V0
+    off = np.cumsum(W * Hh) - W * Hh  # each pose's raster (its two boxes' union) in one canvas
+    lists = {}
+    for key, R, t, bx, polys in (("g", Rg, tg, bg, pg), ("e", Re, te, be, pe)):
+        px = [_footprint_pixels(polys[j], bx[j], int(U0[j]), int(V0[j]), int(W[j])) for j in range(n)]
+        cnt = np.array([len(q[0]) for q in px], np.int64)
+        ends = np.cumsum(cnt)
+        tot = int(ends[-1]) if n else 0
+        rays = np.empty((tot, 6), np.float32)
+        nrm = np.empty(tot)
+        dt = np.empty(tot)
+        cidx = np.empty(tot, np.int64)
+        for j, (ys, xs, fl) in enumerate(px):
+            a, b = int(ends[j] - cnt[j]), int(ends[j])
+            Kj = Ks[j]
+            v = ys + V0[j]
+            u = xs + U0[j]
+            y = (v - Kj[1, 2]) / Kj[1, 1]
+            x = (u - Kj[0, 2] - Kj[0, 1] * y) / Kj[0, 0]
+            Rj = R[j]
+            for i in range(3):  # R^T (x, y, 1): the rays in the model frame
+                rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
+            rays[a:b, :3] = (-Rj.T @ t[j]).astype(np.float32)
+            q = np.sqrt(x * x + y * y + 1.0)
+            nrm[a:b] = q
+            dt[a:b] = depth_test[image[j]][v, u] * q
+            cidx[a:b] = fl + off[j]
+        z = renderer.cast_rays(rays) * nrm
+        lists[key] = (cidx, z, dt, np.repeat(np.arange(n), cnt))
+    cg, dg, dtg, pgi = lists["g"]
+    ce, de, dte, pei = lists["e"]
+    total = int(off[-1] + W[-1] * Hh[-1])
+    vg = (dg > 0) & (((dg.astype(np.float32) - dtg.astype(np.float32)) <= delta) | (dtg == 0))
+    vg_c = np.zeros(total, bool)
+    vg_c[cg[vg]] = True
+    dg_c = np.zeros(total, np.float64)
+    dg_c[cg] = dg
+    vge = vg_c[ce]
+    hit = de > 0
+    ve = hit & ((((de.astype(np.float32) - dte.astype(np.float32)) <= delta) | (dte == 0)) | vge)
+    inter = ve & vge
+    n_vg = np.bincount(pgi[vg], minlength=n)
+    n_ve = np.bincount(pei[ve], minlength=n)
+    n_inter = np.bincount(pei[inter], minlength=n)
+    n_union = n_vg + n_ve - n_inter
+    dist = np.abs(dg_c[ce[inter]] - de[inter]) / diameter
+    k = np.searchsorted(taus, dist, side="right")  # the taus with dist >= tau: the first k
+    T = len(taus)
+    hist = np.bincount(pei[inter] * (T + 1) + k, minlength=n * (T + 1)).reshape(n, T + 1)
+    cost = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (n,T): #{dist >= tau_i}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = (cost + (n_union - n_inter)[:, None]) / n_union[:, None]
+    e[n_union == 0] = 1.0
+    return e
