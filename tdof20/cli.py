@@ -8,8 +8,10 @@ pipeline, the simulator's renderer and oracle labels) are imported inside their 
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import sys
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -32,8 +34,9 @@ from tdof20.formats import write_png
 from tdof20.formats.io import check_output_file
 from tdof20.methods.registry import get_method, method_names, parse_set_options
 from tdof20.objects import all_objects, export_models, object_names
-from tdof20.progress import console
+from tdof20.progress import console, out_console
 from tdof20.scoring.scoring import score_command
+from tdof20.server import cli as server_cli
 from tdof20.sim.lab import DIRECTIONS, clutter_names
 from tdof20.sim.scenes import get_scene, scene_ids
 from tdof20.viz import session_contact_sheet
@@ -74,8 +77,12 @@ app.add_typer(capture_app, name="capture")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(objects_app, name="objects")
 app.add_typer(sim_app, name="sim")
+app.add_typer(server_cli.serve_app, name="serve")
+app.command("submit")(server_cli.submit_command)
+dataset_app.command("publish")(server_cli.publish_command)
 
-out_console = console.__class__()  # stdout, for tables
+#: the exit code of an annotation that labelled some objects and flagged others (docs/annotate.md)
+PARTIAL_EXIT = 3
 
 SCENE = typer.Option("multi/08", help="scene name: single/<class> (e.g. single/cube_136; single/01..20 = object "
                                      "id is an alias) or multi/00..19")
@@ -84,6 +91,15 @@ HEIGHT = typer.Option(480, help="image height in pixels")
 SEED = typer.Option(0, help="noise seed (frames are deterministic for a seed)")
 
 
+
+
+def _scene(name: str) -> str:
+    """``--scene`` checked before any work: an unknown name is one line naming the option."""
+    try:
+        get_scene(name)
+    except TdofError as e:
+        raise TdofError(f"--scene: {e}") from None
+    return name
 
 
 def _ids(text: Optional[str]) -> Optional[list[int]]:
@@ -129,7 +145,7 @@ def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, s
     if he is None or len(he) > 2:
         raise TdofError(f"--hand-eye-error must be MM or MM,DEG (e.g. 2,0.5), got '{hand_eye_error}'")
     he_mm, he_deg = (he + [0.0, 0.0])[:2]
-    return sim_config(scene, steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
+    return sim_config(_scene(scene), steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
                       seed=seed, clutter=names, direction=direction, record_direction=record_direction,
                       hand_eye_error_mm=he_mm, hand_eye_error_deg=he_deg, step_jitter_deg=step_jitter)
 
@@ -220,9 +236,23 @@ def capture_verify(session: Path = typer.Argument(..., help="raw session folder"
 
 
 # ----------------------------------------------------------------------------------- objects
+def _object_entry(o) -> dict:
+    """One catalog row for ``objects list --json``."""
+    info = o.models_info()
+    return {"id": o.obj_id, "name": o.name, "kind": o.kind,
+            "size_mm": [round(info[k], 3) for k in ("size_x", "size_y", "size_z")],
+            "capacity_ml": o.capacity_ml, "diameter_mm": round(o.diameter, 3),
+            "symmetry": ("continuous z" if o.symmetries_continuous else
+                         f"discrete {len(o.symmetries_discrete) + 1}-fold" if o.symmetries_discrete else "none"),
+            "faces": len(o.faces)}
+
+
 @objects_app.command("list")
-def objects_list() -> None:
+def objects_list(json_out: bool = typer.Option(False, "--json", help="print JSON (one object per entry)")) -> None:
     """Print the catalog (TDoF20's 20 classes): id, name, kind, size, capacity, diameter, symmetry."""
+    if json_out:
+        print(json.dumps([_object_entry(o) for o in all_objects()], indent=2))
+        return
     t = Table(title="tdof20 object catalog: TDoF20's classes (mm; the number in a name is its capacity in ml)")
     for c in ("id", "name", "kind", "size x*y*z", "capacity ml", "diameter", "symmetry", "faces"):
         t.add_column(c, justify="right" if c in ("id", "capacity ml", "diameter", "faces") else "left",
@@ -291,7 +321,7 @@ def sim_frames(out: Path = typer.Option(..., "--out", help="folder for the PNGs 
     if not angle_list or not all(abs(a) <= 3600 for a in angle_list):  # nan and inf fail the bound too
         raise TdofError(f"--angles must be comma-separated numbers of degrees (|a| <= 3600), got '{angles}'")
 
-    renderer = build_rig(sim_config(scene, width=width, height=height, seed=seed)).world.renderer
+    renderer = build_rig(sim_config(_scene(scene), width=width, height=height, seed=seed)).world.renderer
     sheet = render_frames(renderer, out, arm, angle_list)
     console.print(f"wrote frames and {sheet}", markup=False)
 
@@ -459,6 +489,8 @@ def annotate_run(raw: list[Path] = typer.Argument(..., help="raw session folder(
     if len(raw) == 1:
         summary = annotate(raw[0], out, models_dir=models, stages=stages, cfg=cfg, force=force)
         out_console.print(summary_text(summary), highlight=False, markup=False)
+        if summary.get("partial"):
+            raise typer.Exit(PARTIAL_EXIT)
         return
     from tdof20.annotate.batch import SUMMARY, annotate_many, batch_text
 
@@ -468,6 +500,8 @@ def annotate_run(raw: list[Path] = typer.Argument(..., help="raw session folder(
         raise TdofError(f"{len(batch['failed'])} of {len(batch['scenes'])} scenes failed: {', '.join(batch['failed'])} "
                         f"({'the others finished; ' if len(batch['failed']) < len(batch['scenes']) else ''}"
                         f"errors above and in {out / SUMMARY}; a rerun resumes each scene)")
+    if batch.get("partial"):
+        raise typer.Exit(PARTIAL_EXIT)
 
 
 @annotate_app.command("evaluate")
@@ -627,11 +661,24 @@ def benchmark_profile(method: str = typer.Argument(..., help="a registered metho
                       batch_size: int = typer.Option(1, help="images per forward pass")) -> None:
     """Table 3: parameters, multiply-adds at 480x640, latency and FPS (network and pose recovery apart) on
     this device, beside the paper's figures and the originals' parameter counts (untrained networks)."""
-    from tdof20.methods.profile import format_profile, format_table, profile
+    from tdof20.methods.profile import format_profile, format_table, profile, select_device
 
     if method.strip().lower() != "all":
         get_method(method)  # an unknown method: one line listing the known ones, before any work
-    p = profile(method, device=device, height=height, width=width, repeats=repeats, batch_size=batch_size)
+        p = profile(method, device=device, height=height, width=width, repeats=repeats, batch_size=batch_size)
+    else:  # method by method, a progress line each (all of them take minutes on a CPU)
+        names = method_names()
+        select_device(device)  # a bad --device is one error, not one per method
+        p = []
+        for i, name in enumerate(names, 1):
+            console.print(f"profiling {name} ({i}/{len(names)}) ...", markup=False, highlight=False)
+            t0 = time.perf_counter()
+            try:
+                p.append(profile(name, device=device, height=height, width=width, repeats=repeats,
+                                 batch_size=batch_size))
+            except TdofError as e:  # as profile('all'): a failing method gets its error in the table
+                p.append({"method": name, "error": str(e)})
+            console.print(f"profiled {name} in {time.perf_counter() - t0:.1f} s", markup=False, highlight=False)
     if json_out:
         print(json.dumps(p, indent=2))
     else:
@@ -657,8 +704,8 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
-    score HFF6DoF and PVNet side by side, OUT/report.md (about 3 minutes measured on 2 idle CPU
-    cores with the defaults; a rerun resumes)."""
+    score HFF6DoF and PVNet side by side, OUT/report.md (2 min 40 s measured on 2 idle CPU cores with
+    the defaults, several times that on a busy machine; a rerun resumes)."""
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:
         raise TdofError("--scenes needs at least one scene name")
@@ -692,9 +739,44 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
     reproduce(out, preset=preset, config=config, dataset=dataset)
 
 
+#: a line break inside a paragraph (not a blank line), with the next line's indentation
+_PARAGRAPH_LINES = re.compile(r"[ \t]*(?<!\n)\n(?!\s*\n)[ \t]*")
+
+
+def _tidy_help(cmd: click.Command) -> click.Command:
+    """No type shown for a flag in the help: typer 0.29 writes ``<bool>`` after ``--help`` and every
+    ``--x/--no-x``, which take no value. And a docstring's line breaks are not sentence breaks: the
+    help renders each paragraph as one line wrapped at the terminal's width (typer's rich help keeps
+    a docstring's newlines, which broke descriptions mid-sentence at any width)."""
+    for attr in ("help", "short_help"):
+        text = getattr(cmd, attr, None)
+        if text:
+            setattr(cmd, attr, _PARAGRAPH_LINES.sub(" ", text.strip()))
+    for p in cmd.params:
+        if getattr(p, "is_flag", False) and p.metavar is None:
+            p.metavar = ""
+    get_help_option = cmd.get_help_option
+
+    def help_option(ctx: click.Context):
+        opt = get_help_option(ctx)
+        if opt is not None and opt.metavar is None:
+            opt.metavar = ""
+        return opt
+
+    cmd.get_help_option = help_option
+    for sub in getattr(cmd, "commands", {}).values():
+        _tidy_help(sub)
+    return cmd
+
+
+def cli() -> click.Command:
+    """The click command of :data:`app` with its help tidied (:func:`_tidy_help`)."""
+    return _tidy_help(typer.main.get_command(app))
+
+
 def main() -> None:
     try:
-        app()
+        cli()(prog_name="tdof20")
     except TdofError as e:
         console.print(f"[bold red]error:[/bold red] {escape(str(e))}", highlight=False, soft_wrap=True)
         sys.exit(2)

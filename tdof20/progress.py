@@ -2,15 +2,37 @@
 
 from __future__ import annotations
 
+import sys
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Iterator, TextIO
 
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn,
                            TimeElapsedColumn, TimeRemainingColumn)
+from rich.rule import Rule
 from rich.text import Text
 
-console = Console(stderr=True)
+NO_WRAP_WIDTH = 100_000  # piped or redirected output: one line stays one line
+
+
+def make_console(stream: TextIO | None = None, *, stderr: bool = False) -> Console:
+    """A console for ``stream`` (stdout, or stderr): a terminal's own width; piped or redirected,
+    no wrapping at all (rich would wrap at 80 columns: headers cut to "capaci…", figures split from
+    their labels), so that a file or a ``grep`` gets whole lines."""
+    stream = stream or (sys.stderr if stderr else sys.stdout)
+    tty = hasattr(stream, "isatty") and stream.isatty()
+    return Console(stderr=stderr, width=None if tty else NO_WRAP_WIDTH, soft_wrap=not tty)
+
+
+console = make_console(stderr=True)
+out_console = make_console()  # stdout: tables and reports
+
+
+def rule(title: str, align: str = "center", con: Console | None = None) -> None:
+    """A titled rule across the terminal; piped (no width to span), as wide as its title, at least 80."""
+    con = con or console
+    width = None if con.is_terminal else max(80, Text.from_markup(title).cell_len + 6)
+    con.print(Rule(title, align=align), width=width)
 
 
 class RateColumn(ProgressColumn):

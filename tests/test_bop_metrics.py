@@ -87,7 +87,8 @@ def mspd_loop(Re, te, Rg, tg, Kk, pts, syms) -> float:
 
 
 class Scene:
-    """An open3d ray-casting scene of one mesh: full-frame depth, one ray per pixel centre."""
+    """An open3d ray-casting scene of one mesh: full-frame depth, one ray per pixel centre
+    (u + 0.5, v + 0.5), bop_toolkit's OpenGL renderers' sample points."""
 
     def __init__(self, obj_id: int):
         m = get_object(obj_id)
@@ -98,7 +99,7 @@ class Scene:
     def depth(self, R, t, Kk=K, w=W, h=H) -> np.ndarray:
         rays = np.zeros((h * w, 6), np.float32)
         o = -R.T @ t
-        v, u = np.mgrid[0:h, 0:w].reshape(2, -1).astype(float)
+        v, u = np.mgrid[0:h, 0:w].reshape(2, -1).astype(float) + 0.5
         y = (v - Kk[1, 2]) / Kk[1, 1]
         x = (u - Kk[0, 2] - Kk[0, 1] * y) / Kk[0, 0]
         for i in range(3):  # the pixel's ray (x, y, 1), turned into the model frame: R^T (x, y, 1)

@@ -244,6 +244,16 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     assert out.count("up to date") == 6 and out.count("has its 1 epoch already") == 2
     assert out.count("newer than the run") == 2
     assert (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime == mtime
+    # ... and says so once per stage, without a time of this run for what it did not do
+    import re
+    assert re.search(r"capture: 48 RGB-D frames reused \(\d+\.\d s when it ran\)", out), out
+    assert re.search(r"annotate: 1 scene reused \(", out) and re.search(r"dataset: \d+ images reused \(", out), out
+    assert "RGB-D frames in" not in out and "capture: reused" not in out
+    # the total is this run's wall time, not the reused stages' sum
+    rerun = json.loads((demo / "timings.json").read_text())
+    assert rerun["capture"] == timings["capture"] and rerun["total"] < sum(v for k, v in rerun.items() if k != "total")
+    assert f"this run {rerun['total']:.1f} s (reused: capture, annotate, dataset, train/hff6dof, train/pvnet" in out
+    assert "1 objects" not in out and "mean (1 object)" in out
     # other data options on the same folder are refused
     # the alias single/12 is the same scene: the data options are compared, not the spelling
     one_line_error(run("demo", "--out", demo, "--scenes", "single/12", "--steps", "13"), "demo.json", "steps 12 (now 13)")

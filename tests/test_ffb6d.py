@@ -121,6 +121,7 @@ def test_bad_sizes_are_one_line_errors(meta):
 
 
 def test_transform_targets_point_from_points_to_keypoints(meta):
+    torch.manual_seed(2)  # the transform samples points from torch's global generator (about 28 of 512 on the object; seed 2: 37)
     R, t = rotation([1, 2, 0.5], 40), np.array([10.0, -5.0, 400.0])
     item = render_item(1, R, t)
     cfg = ffb6d.FFB6DConfig(n_points=512)

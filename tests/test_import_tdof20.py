@@ -218,8 +218,8 @@ def test_rgb_masks_of_equal_channels_are_read(tmp_path):
     with pytest.raises(TdofError) as e:
         import_tdof20(tmp_path / "src", tmp_path / "out2", show_progress=False)
     _one_line(e, masks[1].name, "unequal channels")
-    # found while importing: the import stays unfinished (its marker, no dataset_info.json), not a dataset
-    assert (tmp_path / "out2" / importer.MARKER).exists() and not (tmp_path / "out2" / "dataset_info.json").exists()
+    # found while importing: --out is as it was (absent), and no work folder is left beside it
+    assert not (tmp_path / "out2").exists() and not (tmp_path / ".out2.importing").exists()
 
 
 def test_cli_error_is_one_line(tmp_path):
@@ -292,9 +292,12 @@ def test_interrupted_import_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(importer, "FLUSH_EVERY", 1)
     with pytest.raises(KeyboardInterrupt):
         import_tdof20(tmp_path / "src", out, show_progress=False)
-    assert (out / importer.MARKER).exists() and not (out / "dataset_info.json").exists()
-    assert (out / "scenes" / "000001" / "scene_info.json").exists()
-    assert len(read_json(out / "scenes" / "000002" / "scene_gt.json")) == 1  # one frame of scene 2 kept
+    # the import works beside --out and moves its folder into place at the end
+    work = tmp_path / ".out.importing"
+    assert not out.exists()
+    assert (work / importer.MARKER).exists() and not (work / "dataset_info.json").exists()
+    assert (work / "scenes" / "000001" / "scene_info.json").exists()
+    assert len(read_json(work / "scenes" / "000002" / "scene_gt.json")) == 1  # one frame of scene 2 kept
     # another import into it is refused; the same one finishes it
     write_tdof20_release(tmp_path / "other", **SMALL, seed=1)
     with pytest.raises(TdofError) as e:
@@ -302,7 +305,7 @@ def test_interrupted_import_resumes(tmp_path, monkeypatch):
     _one_line(e, "unfinished import")
     monkeypatch.setattr(importer, "read_class_mask", real)
     s = import_tdof20(tmp_path / "src", out, show_progress=False)
-    assert s["written"] and s["resumed"] and not (out / importer.MARKER).exists()
+    assert s["written"] and s["resumed"] and not (out / importer.MARKER).exists() and not work.exists()
     files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file())
     for p in files:

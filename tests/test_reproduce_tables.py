@@ -251,3 +251,17 @@ def test_the_row_chosen_on_validation_stands_for_the_method_and_choices_render(t
     assert json.loads(paths["tables.json"].read_text())["choices"] == ch
     assert list(csv.reader(io.StringIO(paths["choices.csv"].read_text())))[1][0] == "pvnet_hard"
     assert "Nothing to choose" in T.choices_markdown([])
+
+
+def test_one_object_is_counted_in_the_singular(dataset):
+    """A split of one object: "mean (1 object)" in the tables and the score report, not "1 objects"."""
+    from tdof20.scoring.report import report_markdown, report_text
+
+    root, gt = dataset
+    ev = evaluate(rows([g for g in gt if g[0] == 7]), root, split="simple")
+    names = [r["name"] for r in T.protocol_table([T.Entry("PVNet", "pvnet", "simple", scored(root, gt, "simple"))],
+                                                 "add_s")["rows"]]
+    assert names == ["handle_cup_280", "mean (1 object)"]
+    for text in (report_text([ev]), report_markdown([ev])):
+        assert "mean (1 object)" in text and "all (4 targets)" in text, text
+        assert "1 objects" not in text

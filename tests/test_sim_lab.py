@@ -255,7 +255,7 @@ def test_lab_options_from_a_toml_config(tmp_path):
 
 @pytest.mark.parametrize("edit, needle", [
     (("clutter = [\"cabinet\", \"wall\"]", "clutter = [\"cabinet\", \"sofa\"]"),
-     "sim.clutter: unknown preset 'sofa' (known: cabinet, monitor, box, wall)"),
+     "sim.clutter: unknown preset 'sofa' (known: cabinet, monitor, box, wall, cabinet_near, box_near)"),
     (("direction = \"cw\"", "direction = \"clockwise\""), "turntable.direction: must be one of ccw, cw"),
     (("step_jitter_deg = 0.05", "step_jitter_deg = 20.0"), "sim.step_jitter_deg: must be in [0, step_deg / 2"),
     (("hand_eye_error_deg = 0.5", "hand_eye_error_deg = -1.0"), "sim.hand_eye_error_deg: must be in [0, 10]"),
@@ -286,5 +286,5 @@ def test_capture_run_cli_lab_options(tmp_path):
                          timeout=300)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode != 0 and len(lines) == 1 and "Traceback" not in res.stderr
-    assert "unknown preset 'sofa' (known: cabinet, monitor, box, wall)" in lines[0]
+    assert "unknown preset 'sofa' (known: cabinet, monitor, box, wall, cabinet_near, box_near)" in lines[0]
     assert not (tmp_path / "t").exists()

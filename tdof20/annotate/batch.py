@@ -125,6 +125,8 @@ def _figures(s: dict) -> dict:
     ev = s.get("evaluation")
     if ev:
         fig["wrong_labels"] = ev.get("wrong_labels")
+    if s.get("failed_objects"):
+        fig["failed_objects"] = s["failed_objects"]
     failed = [st for st, e in (s.get("stages") or {}).items() if e.get("status") == "failed"]
     if failed:
         fig["stage"] = failed[0]
@@ -158,7 +160,7 @@ class _RunScene:
                 pass
         else:
             ran = any(e.get("status") == "ran" for e in s["stages"].values())
-            row.update(status="annotated" if ran else "up to date", **_figures(s))
+            row.update(status="partial" if s.get("partial") else "annotated" if ran else "up to date", **_figures(s))
         row["seconds"] = round(time.perf_counter() - t0, 3)
         return row
 
@@ -228,7 +230,8 @@ def annotate_many(raws: Iterable[str | Path], out_dir: str | Path, models_dir: s
 
     Returns (and writes to ``out_dir/annotate_summary.json``) ``{"out", "executor", "workers",
     "scenes_side_by_side", "seconds", "scenes": [row per session, in the order given], "failed":
-    [scene ids]}``; a row: ``scene``, ``raw``, ``out``, ``status`` ("annotated", "up to date" or
+    [scene ids], "partial": [scene ids]}``; a row: ``scene``, ``raw``, ``out``, ``status``
+    ("annotated", "up to date", "partial": labelled but for the objects in ``failed_objects``, or
     "failed"), ``frames``, ``labelled``, ``flagged`` (frames not labelled, with reasons in the
     scene's ``work/summary.json``), ``wrong_labels`` (simulated sessions), ``seconds``, and for a
     failed one ``error`` and ``stage``. A bad RAW, two sessions of one scene id or a scene folder
@@ -266,7 +269,8 @@ def annotate_many(raws: Iterable[str | Path], out_dir: str | Path, models_dir: s
     ordered = [rows[j.out] for j in jobs]
     summary = {"out": str(out.resolve()), "executor": executor, "ray_address": address, "workers": workers,
                "scenes_side_by_side": side, "seconds": round(time.perf_counter() - t0, 3), "scenes": ordered,
-               "failed": [r["scene"] for r in ordered if r["status"] == "failed"]}
+               "failed": [r["scene"] for r in ordered if r["status"] == "failed"],
+               "partial": [r["scene"] for r in ordered if r["status"] == "partial"]}
     write_json(out / SUMMARY, summary)
     return summary
 
@@ -296,4 +300,6 @@ def batch_text(summary: dict) -> str:
         if r["status"] == "failed":
             at = f" in stage '{r['stage']}'" if r.get("stage") else ""
             lines.append(f"  {r['scene']} failed{at}: {r.get('error')}")
+        for f in r.get("failed_objects") or []:
+            lines.append(f"  {r['scene']} partial: object {f['obj_id']} not labelled: {f['reason']}")
     return "\n".join(lines)

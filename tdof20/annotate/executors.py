@@ -204,8 +204,12 @@ def _probe(address: str, timeout: float = 5.0) -> None:
     retries for a long while before it gives up."""
     addr = address.split("://", 1)[-1]
     host, sep, port = addr.rpartition(":")
-    if not sep or not port.isdigit():
-        return  # 'auto' and the like: let Ray resolve it
+    if not sep and addr.strip() in ("auto", "local"):
+        return  # let Ray resolve it
+    if not sep or not port.isdigit() or not host.strip("[] "):
+        # Ray would log its own traceback ("Failed to convert ... to host:port") before failing
+        raise TdofError(f"--ray-address {address!r} is not HOST:PORT (e.g. 10.0.0.5:6379), 'auto' or "
+                        f"ray://HOST:PORT")
     try:
         socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=timeout).close()
     except OSError as e:
@@ -215,6 +219,15 @@ def _probe(address: str, timeout: float = 5.0) -> None:
 def _first_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return f"{type(e).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _ray_reason(e: BaseException) -> str:
+    """The first line of a Ray error that says what happened, without Ray's log excerpts."""
+    for line in str(e).strip().splitlines():
+        line = line.strip()
+        if line and not line.startswith(("(", "[", "*")):
+            return line.rstrip(".")[:200]
+    return "no reason given"
 
 
 def ray_init(address: str | None = None, num_cpus: int | None = None) -> bool:
@@ -270,6 +283,13 @@ def _run_ray(fn: Callable, chunks: list, workers: int | None, address: str | Non
                     if isinstance(cause, TdofError):
                         raise TdofError(str(cause)) from None
                     raise
+                except ray.exceptions.RayError as e:
+                    # the worker process died (killed: out of memory, a signal, a node lost) more
+                    # often than Ray retries a task: one line, not Ray's exception and its logs
+                    raise TdofError(f"a Ray worker died running chunk {i + 1} of {len(chunks)}, more often than "
+                                    f"Ray retries a task ({type(e).__name__}: {_ray_reason(e)}); see the Ray "
+                                    f"logs (/tmp/ray/session_latest/logs), and rerun: finished work is kept"
+                                    ) from None
                 nxt = next(todo, None)
                 if nxt is not None:
                     running[task.remote(fn_ref, nxt[1])] = nxt[0]

@@ -119,7 +119,12 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
         s["reconstruction"] = {"frames_fused": m.get("frames_fused"), "clusters": len(m.get("clusters", [])),
                                "problems": m.get("problems", [])}
     if ctx.placements_file.exists():
-        s["objects"] = read_json(ctx.placements_file)["placements"]
+        pl = read_json(ctx.placements_file)
+        s["objects"] = pl["placements"]
+        if pl.get("failed"):
+            # one object refused by the quality gate, the others labelled: a partial scene (exit code 3)
+            s["failed_objects"] = pl["failed"]
+            s["partial"] = True
     if ctx.label_file.exists():
         lab = read_json(ctx.label_file)
         s["label"] = {k: lab.get(k) for k in ("frames", "labelled", "already_done", "skipped", "removed", "no_opaque",
@@ -276,6 +281,10 @@ def summary_text(summary: dict) -> str:
         fit = (f"fitness {p['fitness']:.2f}, mean distance {p['score_mm']:.2f} mm" if p.get("fitness") is not None
                else "model built from the reconstruction")
         lines.append(f"  object {p['obj_id']}: {fit}")
+    for p in summary.get("failed_objects") or []:
+        lines.append(f"  object {p['obj_id']}: FAILED, not labelled: {p['reason']}")
+    if summary.get("partial"):
+        lines.append(f"  partial: {len(summary['failed_objects'])} object(s) not labelled (exit code 3)")
     flagged = (summary.get("registration") or {}).get("flagged") or []
     lab = summary.get("label") or {}
     if lab:

@@ -188,14 +188,18 @@ def match_models(models: dict, objects: list[int], clusters: list[np.ndarray], p
 # the place stage: poses, the quality gate, the scene's models folder
 # ---------------------------------------------------------------------------------------------
 def place_models(objects: list[dict], meshes: dict, clusters: list[np.ndarray], cluster_files: list[str],
-                 up: np.ndarray, cfg: AnnotateConfig, where: Path) -> list[dict]:
+                 up: np.ndarray, cfg: AnnotateConfig, where: Path, failed: list | None = None) -> list[dict]:
     """The placements of the matched objects (``fits.json``'s ``objects``: obj_id, cluster, the
     matching fit's ``T_ref_model``): each fit refined on its cluster with ``place.fit_samples``
     model samples, set upright on the table (normal ``up``) when tilted less than
     ``place.upright_max_deg``, and checked against the quality gate — a bad fit is a TdofError
     naming ``where`` and the cluster's file (``cluster_files``). Returns one placement per object
     (gt_id, obj_id, cluster, T_ref_model, fitness, rmse_mm, score_mm, upright_correction_deg,
-    source, note), in the order given."""
+    source, note), in the order given.
+
+    With a ``failed`` list, an object that fails the gate is appended to it ({obj_id, cluster,
+    reason}: the one line the error would say) and left out, so the others are labelled (a
+    "partial" scene); only when every object fails is the first one's TdofError raised."""
     pc = cfg.place
     samples = model_samples(meshes, pc.fit_samples)
     placements: list[dict] = []
@@ -217,13 +221,19 @@ def place_models(objects: list[dict], meshes: dict, clusters: list[np.ndarray], 
         if f.score > pc.max_score_mm:
             bad.append(f"mean distance {f.score:.2f} mm > {pc.max_score_mm}")
         if bad:
-            raise TdofError(f"object {o} fits its cluster badly ({', '.join(bad)}; work/reconstruction/"
+            err = TdofError(f"object {o} fits its cluster badly ({', '.join(bad)}; work/reconstruction/"
                             f"{cluster_files[j]}): the wrong model, a model in other units, or a "
                             f"bad reconstruction; no labels are written from it", where)
+            if failed is None:
+                raise err
+            failed.append({"obj_id": o, "cluster": j, "reason": str(err)})
+            continue
         placements.append({"gt_id": len(placements), "obj_id": o, "cluster": j, "T_ref_model": T_list(T),
                            "fitness": float(f.fitness), "rmse_mm": float(f.rmse), "score_mm": float(f.score),
                            "upright_correction_deg": None if tilt is None or note else round(float(tilt), 4),
                            "source": "models", "note": note})
+    if failed and not placements:
+        raise TdofError(failed[0]["reason"])
     return placements
 
 

@@ -255,7 +255,8 @@ class _Points:
 # ---------------------------------------------------------------------------------------------
 def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = (), sample: int = 12,
              out_dir: str | Path | None = None, progress: bool = True, evaluation: dict | None = None,
-             n_points: int = 600, session_dir: str | Path | None = None) -> Path:
+             n_points: int = 600, session_dir: str | Path | None = None,
+             failed_objects: Iterable[dict] = ()) -> Path:
     """Write the QA outputs of an annotated scene (see the module docstring); returns the path of
     ``report.html``. ``registration``: a RegistrationResult or the path of its JSON (its flagged
     frames join ``flagged``); ``flagged``: [(arm, step, reason) | (im_id, reason) | im_id];
@@ -366,6 +367,8 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
                      "reason": "; ".join(r)} for im, r in sorted(flags.items())],
         "objects": objects, "overlays": overlays, "contact_sheet": sheet, "registration_plot": reg_png,
         "problems": problems,
+        # objects the place stage's quality gate refused (a partial scene): {obj_id, cluster, reason}
+        "failed_objects": [dict(f) for f in failed_objects],
     }
     write_json(out / "qa.json", summary)
     report = out / "report.html"
@@ -437,6 +440,10 @@ def _html(s: dict, reg, evaluation: dict | None) -> str:
     p.append("<h2>Counts</h2>")
     p.append(_table(["", "frames"], [["planned (arms × steps)", _n(s["n_planned"])], ["images in the scene", _n(s["n_images"])],
                                      ["labelled", _n(s["n_labelled"])], ["flagged", _n(len(s["flagged"]))]], left=[0]))
+    if s.get("failed_objects"):
+        p.append("<h2>Objects not labelled (partial scene)</h2>")
+        p.append(_table(["obj_id", "reason"], [[_n(f["obj_id"]), _e(f["reason"])] for f in s["failed_objects"]],
+                        left=[1], bad=range(len(s["failed_objects"]))))
     p.append("<h2>Flagged frames</h2>")
     if s["flagged"]:
         files = {o["im_id"]: o["file"] for o in s["overlays"]}

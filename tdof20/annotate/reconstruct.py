@@ -71,6 +71,11 @@ class ReconstructionConfig:
                                       # this is a piece of an object (objects stand on the table) ...
     floating_join_mm: float = 60.0    # ... and joins the standing cluster nearest to it across the
                                       # table, if one is within this (horizontal distance)
+    static_max_agree: float = 0.3     # a point above the table whose fused position the frames' depth
+                                      # agrees with in at most this share of the frames that decide
+                                      # (agree, or see through it) does not turn with the table: static
+                                      # clutter smeared round the axis, never an object (0 = keep all)
+    static_frames: int = 48           # frames kept (evenly over the run) for that test
     plane_iters: int = 1000           # RANSAC hypotheses per plane
     seed: int = 0                     # of the RANSAC samples (the least-squares refinement all but
                                       # removes their effect)
@@ -80,7 +85,8 @@ class ReconstructionConfig:
                                                     "crop_radius_mm", "cluster_eps_mm", "cluster_min_points",
                                                     "min_weight", "block_count", "min_cluster_points",
                                                     "plane_iters", "floating_mm"),
-                     non_negative=("above_table_mm", "seed", "floating_join_mm"))
+                     non_negative=("above_table_mm", "seed", "floating_join_mm", "static_max_agree",
+                                   "static_frames"))
 
 
 @dataclass
@@ -172,10 +178,18 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     it). The fused points are first cropped to a cylinder around the axis (the bench around the
     turntable, a larger parallel plane, falls outside it); the table top is then the largest plane
     perpendicular to the axis (planes are peeled off by RANSAC one by one)."""
-    vol = fuse(frames, camera, cfg)
+    kept: list[tuple[np.ndarray, np.ndarray]] = []
+    vol = fuse(_keep_sample(frames, kept, cfg.static_frames), camera, cfg)
     if vol.hashmap().size() == 0:  # nothing integrated (no frame, or every depth empty): open3d cannot extract
         return Reconstruction(np.zeros((0, 3)), np.r_[np.asarray(axis_dir, float), 0.0], [], None)
-    pc = vol.extract_point_cloud(weight_threshold=cfg.min_weight)
+    try:
+        pc = vol.extract_point_cloud(weight_threshold=cfg.min_weight)
+    except RuntimeError as e:
+        # no surface seen by cfg.min_weight frames (a 1-arm x 2-step session whose two views share
+        # little): open3d fails on the empty point cloud's colours (SetPointColors)
+        if "SetPointColors" not in str(e):
+            raise
+        return Reconstruction(np.zeros((0, 3)), np.r_[np.asarray(axis_dir, float), 0.0], [], None)
     pts = pc.point.positions.numpy().astype(np.float64) * 1000.0
     nrm = pc.point.normals.numpy().astype(np.float64) if "normals" in pc.point else np.zeros_like(pts)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
@@ -211,6 +225,9 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     dist = plane_distance(cyl, plane)
     above = dist > cfg.above_table_mm
     cand, cand_n = cyl[above], cyl_n[above]
+    if len(cand) and kept and cfg.static_max_agree > 0:
+        turns = turning_points(cand, kept, camera, cfg)
+        cand, cand_n = cand[turns], cand_n[turns]
     clusters = []
     if len(cand):
         c = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cand))
@@ -298,3 +315,51 @@ def _footprint_circle(xy: np.ndarray) -> tuple[np.ndarray, float] | None:
     r = float(np.sqrt(r2))
     extent = float(np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2][0]))   # along the main direction
     return (m + sol[:2], r) if r <= 0.6 * extent else None
+
+
+def _keep_sample(frames, kept: list, n: int):
+    """Pass the frames through, keeping at most ~``n`` of them, evenly spread over the run, in
+    ``kept`` (every s-th; when the list grows to 2n every other is dropped and s doubles)."""
+    stride, i = 1, 0
+    for depth_mm, T in frames:
+        if n > 0 and i % stride == 0:
+            kept.append((depth_mm, np.asarray(T, float)))
+            if len(kept) >= 2 * n:
+                del kept[1::2]
+                stride *= 2
+        i += 1
+        yield depth_mm, T
+
+
+def turning_points(points: np.ndarray, frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera,
+                   cfg: ReconstructionConfig = ReconstructionConfig()) -> np.ndarray:
+    """(N,) bool: the fused points (reference frame, the table's turning frame) that turn with the
+    turntable. Each frame's depth is asked about each point: the depth there agrees (within
+    max(6 mm, 3 voxels)), lies beyond it (the camera sees through where the point would be), or
+    before it (hidden: no say); no depth there (cut off by the crop, beyond the cylinder) counts as
+    seen through. Something fixed in the lab (a cabinet) is fused into an arc smeared
+    round the axis, which each frame's depth agrees with only where it was seen: a point the
+    deciding frames agree with in at most ``cfg.static_max_agree`` of them is static. A point
+    fewer than two frames decide on is kept."""
+    tol = max(6.0, 3.0 * cfg.voxel_mm)
+    agree = np.zeros(len(points), np.int32)
+    decide = np.zeros(len(points), np.int32)
+    P = np.c_[points, np.ones(len(points))]
+    K = camera.K
+    for depth_mm, T_ref_frame in frames:
+        X = P @ invert(T_ref_frame).T
+        z = X[:, 2]
+        ok = z > 1.0
+        u = np.full(len(z), -1, np.int64)
+        v = np.full(len(z), -1, np.int64)
+        u[ok] = np.rint(K[0, 0] * X[ok, 0] / z[ok] + K[0, 2]).astype(np.int64)
+        v[ok] = np.rint(K[1, 1] * X[ok, 1] / z[ok] + K[1, 2]).astype(np.int64)
+        h, w = depth_mm.shape
+        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        zo = np.zeros(len(z))
+        zo[ok] = depth_mm[v[ok], u[ok]]
+        # no depth at a point inside the crop: the camera saw past it (to what the crop cut off)
+        a = ok & (zo > 0) & (np.abs(zo - z) <= tol)
+        agree += a
+        decide += a | (ok & ((zo > z + tol) | (zo == 0)))
+    return (decide < 2) | (agree > cfg.static_max_agree * decide)

@@ -259,6 +259,10 @@ def _reconstruct(ctx: StageContext) -> dict:
         why = f" (registration: {'; '.join(reasons[:2])})" if reasons else ""
         raise TdofError(f"no usable opaque frame to fuse: registration flagged them all or they are unreadable"
                         f"{why}; see work/registration.json", ctx.reg_file)
+    if not len(rec.points):
+        raise TdofError(f"the reconstruction is empty: no surface was seen by reconstruct.min_weight = "
+                        f"{ctx.cfg.reconstruct.min_weight:g} of the {len(used)} fused frames (too few turntable "
+                        f"steps or arm positions; capture more, or lower reconstruct.min_weight)", ctx.rec_dir)
     if not rec.clusters:
         raise TdofError(f"the reconstruction holds no object on the turntable ({len(used)} frames fused, "
                         f"{len(rec.points)} surface points): see work/reconstruction/scene_points.ply",
@@ -352,6 +356,7 @@ def _place(ctx: StageContext) -> dict:
     plane = np.asarray(meta["plane"], float)
     up = plane[:3] / np.linalg.norm(plane[:3])
     dst = ctx.out / "models"
+    failed: list[dict] = []   # objects the quality gate refused: the others are labelled ("partial")
     if fits["source"] == "models":
         md = ctx.models_dir if ctx.models_dir is not None else (Path(fits["models_dir"]) if fits.get("models_dir") else None)
         if md is None or not Path(md).is_dir():
@@ -359,7 +364,7 @@ def _place(ctx: StageContext) -> dict:
         md = Path(md)
         obj_ids = sorted({int(e["obj_id"]) for e in fits["objects"]})
         placements = place_models(fits["objects"], load_meshes(md, obj_ids), clusters,
-                                  [c["file"] for c in meta["clusters"]], up, ctx.cfg, ctx.fits_file)
+                                  [c["file"] for c in meta["clusters"]], up, ctx.cfg, ctx.fits_file, failed)
         # the scene's models folder: the user's files of these objects, byte for byte
         copy_models(md, dst, obj_ids)
     else:
@@ -375,8 +380,8 @@ def _place(ctx: StageContext) -> dict:
             if p.is_file():
                 copy_file(p, dst / p.name)
     write_json(ctx.placements_file, {"format": "tdof20-placements", "plane": meta["plane"],
-                                     "placements": placements})
-    return {"objects": len(placements)}
+                                     "placements": placements, "failed": failed})
+    return {"objects": len(placements), **({"failed_objects": len(failed)} if failed else {})}
 
 
 def _place_inputs(ctx: StageContext) -> dict:
@@ -460,7 +465,8 @@ def _qa(ctx: StageContext) -> dict:
     else:
         ctx.eval_file.unlink(missing_ok=True)
     kw = dict(registration=reg, sample=ctx.cfg.qa.sample, evaluation=evaluation, progress=ctx.progress,
-              session_dir=ctx.raw)
+              session_dir=ctx.raw,
+              failed_objects=read_json(ctx.placements_file).get("failed", []) if ctx.placements_file.exists() else [])
     try:
         report = write_qa(ctx.out, flagged=flagged, **kw)
     except TdofError:

@@ -17,12 +17,16 @@ What ROOT holds (the layout of :mod:`tdof20.dataset.build`, docs/tdof20_release.
 
 Scene ids: single/<class> -> its class id (line of classes.txt), multi/NN -> n_classes + 1 + NN.
 Every input is read and checked (units detected, one frame per scene rendered against its mask)
-before anything is written, so a refusal leaves ROOT as it was. ``ROOT/.import.json`` marks an
-import under way; each scene is finished when its scene_info.json is written; a rerun continues.
+before anything is written (``check=True`` also decodes every mask and depth, as the import does).
+The import writes into ``.ROOT.importing/`` beside ROOT and moves it into place at the end, so a
+refusal half-way leaves ROOT as it was; ``.import.json`` in it marks an import under way; each
+scene is finished when its scene_info.json is written; a rerun continues.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections import Counter
 from pathlib import Path
 
@@ -49,6 +53,7 @@ DEPTH_MODES = {"raw": "depth/: the release's broken_depth/ (the sensor's depth, 
                "stabilized": "depth_stabilized/: the release's depth/ (stabilized, hole-filled)",
                "restored": "depth_restored/: the models rendered at the poses, composited into the stabilized depth"}
 FLUSH_EVERY = 100
+IOU_FILE = ".mask_iou.json"  # a scene's per-frame mask IoUs while it is imported
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,12 +172,35 @@ def _split_class(pix: np.ndarray, members: list[int], lab) -> list[np.ndarray]:
     return [pix & (nearest == j + 1) for j in range(len(members))]
 
 
-def _labels(fp, cmask: np.ndarray, lab, n_classes: int, path: Path) -> tuple[list[np.ndarray], dict]:
-    """Visible masks per instance from the class-id mask; what was odd about the frame."""
+def _check_class_ids(cmask: np.ndarray, n_classes: int, path: Path) -> None:
     vals = np.unique(cmask)
     bad = [int(v) for v in vals if v != 0 and not 1 <= v <= n_classes]
     if bad:
         raise TdofError(f"holds class id {bad[0]}, which is not in classes.txt (ids 1..{n_classes})", path)
+
+
+def _read_frames(rel: Release, frames: dict[str, list[int]], camera, show_progress: bool) -> None:
+    """What the import decodes, for ``--check``: every frame's class-id mask (its size and class
+    ids) and both depth PNGs, so that a check that passes is an import that passes."""
+    n = sum(len(v) for v in frames.values())
+    with progress(show_progress and n > 200) as bar:
+        task = bar.add_task("reading masks and depths", total=n)
+        for scene, ims in frames.items():
+            for im in ims:
+                mpath = rel.frame_path(scene, im, "mask")
+                cmask = read_class_mask(mpath)
+                if cmask.shape != (camera.height, camera.width):
+                    raise TdofError(f"the mask is {cmask.shape[1]}x{cmask.shape[0]}, the images "
+                                    f"{camera.width}x{camera.height}", mpath)
+                _check_class_ids(cmask, len(rel.classes), mpath)
+                for sub in ("broken_depth", "depth"):
+                    read_png(rel.frame_path(scene, im, sub), "depth")
+                bar.advance(task)
+
+
+def _labels(fp, cmask: np.ndarray, lab, n_classes: int, path: Path) -> tuple[list[np.ndarray], dict]:
+    """Visible masks per instance from the class-id mask; what was odd about the frame."""
+    _check_class_ids(cmask, n_classes, path)
     odd = {"split": 0, "unposed_px": int(np.count_nonzero((cmask > 0) & ~np.isin(cmask, fp.cls_ids)))}
     visib: list[np.ndarray] = [None] * len(fp.cls_ids)
     for c, n in Counter(fp.cls_ids.tolist()).items():
@@ -310,9 +338,39 @@ def import_tdof20(src: str | Path, out: str | Path | None, *, check: bool = Fals
         "written": False,
     }
     if check:
+        _read_frames(rel, frames, camera, show_progress)
         return summary
 
     # ------------------------------------------------------------------ write
+    # into a work folder beside --out, moved into place at the end: a refusal half-way leaves --out as it was
+    dest = out
+    out, fresh = _work_folder(dest, src, list(frames), state)
+    try:
+        _write_all(rel, frames, geo, syms, poses, f_pose, raycaster, camera, summary, src, out, show_progress)
+    except TdofError:
+        if fresh:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    if out != dest:
+        os.replace(out, dest)
+    summary.update(written=True, out=str(dest), resumed=state == "resume" or not fresh)
+    return summary
+
+
+def _work_folder(out: Path, src: Path, scenes: list[str], state: str) -> tuple[Path, bool]:
+    """Where the import writes: --out itself when it holds this import already (or its parent
+    cannot be written), else ``.{name}.importing`` beside it (resumed when it holds this import).
+    -> (folder, whether this run starts it)."""
+    up = next(p for p in out.absolute().parents if p.exists())
+    if state == "resume" or not os.access(up, os.W_OK | os.X_OK):
+        return out, False
+    work = out.parent / f".{out.name}.importing"
+    return work, _out_state(work, src, scenes) == "new"
+
+
+def _write_all(rel: Release, frames: dict, geo: dict, syms: dict, poses: dict, f_pose: float, raycaster, camera,
+               summary: dict, src: Path, out: Path, show_progress: bool) -> None:
+    intr = rel.intrinsics
     out.mkdir(parents=True, exist_ok=True)
     src_abs = str(src.resolve())
     write_json(out / MARKER, {"source_path": src_abs, "scenes": sorted(frames)})
@@ -354,8 +412,7 @@ def import_tdof20(src: str | Path, out: str | Path | None, *, check: bool = Fals
         info["notes"].append(f"{odd_total['unposed_px']} mask pixels carry a class with no pose in their frame: ignored")
     write_json(out / "dataset_info.json", info)
     (out / MARKER).unlink(missing_ok=True)
-    summary.update(written=True, out=str(out), resumed=state == "resume", notes=info["notes"])
-    return summary
+    summary["notes"] = info["notes"]
 
 
 def _write_scene(rel: Release, scene: str, ims: list[int], poses: dict, f_pose: float, raycaster, camera,
@@ -376,39 +433,56 @@ def _write_scene(rel: Release, scene: str, ims: list[int], poses: dict, f_pose: 
     if (d / "scene_gt.json").exists():
         done = {int(k) for k in read_json(d / "scene_gt.json")}
     bar.advance(task, len(done & set(ims)))
-    ious = []
-    K, n_cls = camera.K, len(rel.classes)
+    # each frame's mask IoUs, kept beside the scene's files as they are flushed, so that a resumed
+    # import's mask_iou_mean covers every frame, not only the last run's
+    iou_path = d / IOU_FILE
+    saved = read_json(iou_path) if iou_path.exists() and done else {}
+    ious: dict[int, list[float]] = {int(k): v for k, v in saved.items() if int(k) in done} \
+        if isinstance(saved, dict) else {}
     with BopSceneWriter(d) as writer:
-        for n, im in enumerate(i for i in ims if i not in done):
-            fp = poses[(scene, im)]
-            Ts = _transforms(fp, f_pose)
-            ids = fp.cls_ids.tolist()
-            lab = raycaster.render(list(zip(ids, Ts)))
-            mpath = rel.frame_path(scene, im, "mask")
-            cmask = read_class_mask(mpath)
-            if cmask.shape != (camera.height, camera.width):
-                raise TdofError(f"the mask is {cmask.shape[1]}x{cmask.shape[0]}, the images "
-                                f"{camera.width}x{camera.height}", mpath)
-            visib, o = _labels(fp, cmask, lab, n_cls, mpath)
-            odd.update(o)
-            ious += [_iou(v, lab.visible == i) for i, v in enumerate(visib)]
-            full = [f | v for f, v in zip(lab.full, visib)]
-            broken = read_png(rel.frame_path(scene, im, "broken_depth"), "depth")
-            stab = read_png(rel.frame_path(scene, im, "depth"), "depth")
-            restored = stab.copy()
-            hit = lab.visible >= 0
-            restored[hit] = camera.mm_to_depth(lab.depth[hit])
-            atomic_write_bytes(d / "rgb" / f"{im:06d}.jpg", read_bytes(rel.frame_path(scene, im, "rgb"), "colour image"))
-            writer.add_frame(im, K, camera.depth_scale, [(c, T[:3, :3], T[:3, 3]) for c, T in zip(ids, Ts)],
-                             full, visib, depth=broken, extra={"depth_stabilized": stab, "depth_restored": restored})
-            bar.advance(task)
-            if (n + 1) % FLUSH_EVERY == 0:
-                writer.flush()
+        try:
+            for n, im in enumerate(i for i in ims if i not in done):
+                odd.update(_write_frame(rel, scene, im, poses[(scene, im)], f_pose, raycaster, camera, d, writer,
+                                        ious))
+                bar.advance(task)
+                if (n + 1) % FLUSH_EVERY == 0:
+                    write_json(iou_path, ious, indent=None)  # before the frames it covers are flushed
+                    writer.flush()
+        finally:
+            if ious:
+                write_json(iou_path, ious, indent=None)
+    every = [v for im in ims for v in ious.get(im, [])]
     write_json(info_path, {"scene_id": scene, "source": str(sc.folder.relative_to(rel.root)), "frames": len(ims),
                            "im_id_rule": sc.im_id_rule, "stems": {str(i): sc.stems[i] for i in ims},
-                           "mask_iou_mean": round(float(np.mean(ious)), 4) if ious else None,
+                           "mask_iou_mean": round(float(np.mean(every)), 4) if every else None,
                            "odd": dict(odd)})
+    iou_path.unlink(missing_ok=True)
     return odd
+
+
+def _write_frame(rel: Release, scene: str, im: int, fp, f_pose: float, raycaster, camera, d: Path, writer,
+                 ious: dict) -> Counter:
+    """One frame into the scene writer (its mask IoUs into ``ious``); what was odd about it."""
+    Ts = _transforms(fp, f_pose)
+    ids = fp.cls_ids.tolist()
+    lab = raycaster.render(list(zip(ids, Ts)))
+    mpath = rel.frame_path(scene, im, "mask")
+    cmask = read_class_mask(mpath)
+    if cmask.shape != (camera.height, camera.width):
+        raise TdofError(f"the mask is {cmask.shape[1]}x{cmask.shape[0]}, the images "
+                        f"{camera.width}x{camera.height}", mpath)
+    visib, odd = _labels(fp, cmask, lab, len(rel.classes), mpath)
+    ious[im] = [_iou(v, lab.visible == i) for i, v in enumerate(visib)]
+    full = [f | v for f, v in zip(lab.full, visib)]
+    broken = read_png(rel.frame_path(scene, im, "broken_depth"), "depth")
+    stab = read_png(rel.frame_path(scene, im, "depth"), "depth")
+    restored = stab.copy()
+    hit = lab.visible >= 0
+    restored[hit] = camera.mm_to_depth(lab.depth[hit])
+    atomic_write_bytes(d / "rgb" / f"{im:06d}.jpg", read_bytes(rel.frame_path(scene, im, "rgb"), "colour image"))
+    writer.add_frame(im, camera.K, camera.depth_scale, [(c, T[:3, :3], T[:3, 3]) for c, T in zip(ids, Ts)],
+                     full, visib, depth=broken, extra={"depth_stabilized": stab, "depth_restored": restored})
+    return Counter(odd)
 
 
 def _write_splits(rel: Release, frames: dict[str, list[int]], out: Path) -> None:

@@ -160,7 +160,21 @@ def copy_scene(src: Path, dst: Path) -> None:
         if p.exists():
             shutil.rmtree(p)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("models", "models_eval", ".*.tmp"))
+    try:
+        shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("models", "models_eval", ".*.tmp"))
+    except shutil.Error as e:  # a list of (src, dst, why) per failed file (a full disk: every one of them)
+        shutil.rmtree(tmp, ignore_errors=True)
+        errors = [x for x in (e.args[0] if e.args and isinstance(e.args[0], list) else []) if len(x) == 3]
+        if not errors:
+            raise
+        first_src, first_dst, why = errors[0]
+        more = f" ({len(errors) - 1} more files failed too)" if len(errors) > 1 else ""
+        why = str(why).split(": '", 1)[0]  # "[Errno 28] No space left on device: '<path>'" -> without the path
+        try:  # name the file where it was to go, not the temporary copy
+            first_dst = dst / Path(first_dst).relative_to(tmp)
+        except ValueError:
+            pass
+        raise TdofError(f"cannot copy the scene file {first_src} here: {why}{more}", first_dst) from None
     if dst.exists():
         os.replace(dst, old)
     os.replace(tmp, dst)

@@ -16,7 +16,10 @@ image per chunk, LZF-compressed — fast to decode):
     depth_scale     (N,)      float32
     scene_id, im_id (N,)      int32
 
-File attributes: split, part, dataset root, models_info (JSON text).
+File attributes: split, part, dataset root, models_info (JSON text); a shard a training packs also
+``dataset_sha256`` (tdof20.methods.train_data.dataset_digest: what it was made from).
+Opening one (:class:`ShardDataset`) checks its per-instance arrays are plausible
+(:func:`check_plausible`); a damaged chunk read later is one line naming the shard and the array.
 """
 
 from __future__ import annotations
@@ -128,6 +131,62 @@ def pack_shard(images: list[tuple[int, int]], source, out: str | Path, attrs: di
     return out
 
 
+#: a translation beyond this (mm) is not a pose on a table (100 m)
+T_MAX_MM = 1e5
+
+
+def _array(f: h5py.File, name: str, path: Path) -> np.ndarray:
+    try:
+        return f[name][:]
+    except (OSError, ValueError) as e:
+        raise TdofError(f"its array {name} cannot be read (damaged: {(str(e).splitlines() or [''])[0][:60]})",
+                        path) from None
+
+
+def check_plausible(path: Path, obj: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                    depth_scale: np.ndarray, models_info: str | None = None) -> None:
+    """One-line TdofError naming the shard, the array and the first bad index when the per-instance
+    arrays are not poses (R not a rotation, |t| beyond :data:`T_MAX_MM`), an obj_id is negative or not
+    in the shard's models_info, or K / depth_scale is not a camera (NaN, fx/fy <= 0, last row not
+    0 0 1, scale <= 0). Vectorised over the small per-instance arrays (the images are not read)."""
+    def first(bad: np.ndarray) -> str:
+        return ", ".join(str(int(v)) for v in np.argwhere(bad)[0])
+
+    used = obj > 0
+    if (obj < 0).any():
+        raise TdofError(f"its array obj_id holds a negative id at [{first(obj < 0)}]", path)
+    if models_info:
+        try:
+            known = {int(k) for k in json.loads(models_info)}
+        except (ValueError, TypeError):
+            known = None
+        if known:
+            unknown = used & ~np.isin(obj, sorted(known))
+            if unknown.any():
+                i = tuple(np.argwhere(unknown)[0])
+                raise TdofError(f"its array obj_id holds {int(obj[i])} at [{first(unknown)}], an object its "
+                                "models_info does not have", path)
+    if used.any():
+        RtR = np.einsum("...ji,...jk->...ik", R, R)
+        err = np.abs(RtR - np.eye(3, dtype=np.float32)).max(axis=(-2, -1))
+        det = np.linalg.det(R.astype(np.float64))
+        bad = used & ((err > 1e-2) | (det < 0))
+        if bad.any():
+            raise TdofError(f"its array R is not a rotation at [{first(bad)}] (R^T R differs from I by "
+                            f"{err[tuple(np.argwhere(bad)[0])]:.3g}, det {det[tuple(np.argwhere(bad)[0])]:.3g})", path)
+        far = used & (np.linalg.norm(t.astype(np.float64), axis=-1) > T_MAX_MM)
+        if far.any():
+            raise TdofError(f"its array t is beyond {T_MAX_MM:g} mm at [{first(far)}]", path)
+    badk = ~np.isfinite(K).all(axis=(1, 2)) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0) | \
+        (np.abs(K[:, 2] - np.array([0, 0, 1], np.float32)).max(axis=1) > 1e-6)
+    if badk.any():
+        raise TdofError(f"its array K is not a camera matrix at [{first(badk)}] (NaN, fx/fy <= 0 or last row "
+                        "not 0 0 1)", path)
+    bads = ~np.isfinite(depth_scale) | (depth_scale <= 0)
+    if bads.any():
+        raise TdofError(f"its array depth_scale is not a positive number at [{first(bads)}]", path)
+
+
 class ShardDataset:
     """A torch Dataset over one HDF5 shard: item n is a dict of tensors (images channel-first for
     colour: ``rgb`` (3,H,W) uint8; depths float32 mm; ``label``/``instance`` int64; poses and K).
@@ -142,7 +201,9 @@ class ShardDataset:
                 missing = [k for k in IMAGE_KEYS + ("obj_id", "R", "t", "K", "depth_scale") if k not in f]
                 if not missing:
                     dtypes = {k: f[k].dtype for k in IMAGE_KEYS}
-                    obj, R, t = f["obj_id"][:], f["R"][:], f["t"][:]
+                    obj, R, t = _array(f, "obj_id", self.path), _array(f, "R", self.path), _array(f, "t", self.path)
+                    K = _array(f, "K", self.path)
+                    scale = _array(f, "depth_scale", self.path)
         except (OSError, KeyError) as e:
             raise TdofError(f"not a readable tdof20 shard ({e})", self.path) from None
         if missing:
@@ -154,6 +215,7 @@ class ShardDataset:
         used = obj > 0
         if not (np.isfinite(R[used]).all() and np.isfinite(t[used]).all()):
             raise TdofError("holds a pose that is not finite (NaN or inf in R or t)", self.path)
+        check_plausible(self.path, obj, R, t, K, scale, self.attrs.get("models_info"))
         med = median_distance_if_metres(t[used])
         if med is not None:
             raise TdofError(f"translations look like metres (median |t| {med:.4g}, under {METRES_BELOW_MM:g} mm): t "
@@ -174,17 +236,25 @@ class ShardDataset:
         if not 0 <= n < self._n:
             raise IndexError(n)
         f = self._file()
-        s = float(f["depth_scale"][n])
+
+        def get(name):  # a damaged compressed chunk: one line naming the shard and the array
+            try:
+                return f[name][n]
+            except (OSError, ValueError) as e:
+                raise TdofError(f"its array {name} cannot be read at image {n} (damaged: "
+                                f"{(str(e).splitlines() or [''])[0][:60]})", self.path) from None
+
+        s = float(get("depth_scale"))
         return {
-            "rgb": torch.from_numpy(np.ascontiguousarray(f["rgb"][n].transpose(2, 0, 1))),
-            "depth": torch.from_numpy(f["depth"][n].astype(np.float32) * s),
-            "depth_restored": torch.from_numpy(f["depth_restored"][n].astype(np.float32) * s),
-            "label": torch.from_numpy(f["label"][n].astype(np.int64)),
-            "instance": torch.from_numpy(f["instance"][n].astype(np.int64)),
-            "obj_id": torch.from_numpy(f["obj_id"][n].astype(np.int64)),
-            "R": torch.from_numpy(f["R"][n]), "t": torch.from_numpy(f["t"][n]),
-            "K": torch.from_numpy(f["K"][n]),
-            "scene_id": int(f["scene_id"][n]), "im_id": int(f["im_id"][n]),
+            "rgb": torch.from_numpy(np.ascontiguousarray(get("rgb").transpose(2, 0, 1))),
+            "depth": torch.from_numpy(get("depth").astype(np.float32) * s),
+            "depth_restored": torch.from_numpy(get("depth_restored").astype(np.float32) * s),
+            "label": torch.from_numpy(get("label").astype(np.int64)),
+            "instance": torch.from_numpy(get("instance").astype(np.int64)),
+            "obj_id": torch.from_numpy(get("obj_id").astype(np.int64)),
+            "R": torch.from_numpy(get("R")), "t": torch.from_numpy(get("t")),
+            "K": torch.from_numpy(get("K")),
+            "scene_id": int(get("scene_id")), "im_id": int(get("im_id")),
         }
 
     def __getstate__(self) -> dict:

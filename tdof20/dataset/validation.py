@@ -25,6 +25,7 @@ from tdof20.dataset.splits import VAL_PART, part_of
 from tdof20.dataset.stats import split_images
 from tdof20.errors import TdofError
 from tdof20.formats import write_json
+from tdof20.formats.io import safe_inside
 
 PARTS_WITH_VAL = ("train", "test", "val", "train-val")
 
@@ -94,7 +95,7 @@ def write_val_targets(root: str | Path, split: str, path: str | Path | None = No
     """Write :func:`val_targets` (default: ROOT/.cache/val_targets_{split}.json, atomically); returns the path.
     A validation part without targets is refused."""
     root = Path(root)
-    path = Path(path) if path is not None else root / ".cache" / f"val_targets_{split}.json"
+    path = Path(path) if path is not None else safe_inside(root, root / ".cache" / f"val_targets_{split}.json")
     tg = val_targets(root, split)
     if not tg:
         raise TdofError(f"the {split} split's validation part has no targets (too few turntable steps per arm "

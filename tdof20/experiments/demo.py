@@ -52,7 +52,7 @@ from tdof20.errors import TdofError
 from tdof20.formats import atomic_write_bytes, read_json, write_json
 from tdof20.methods.registry import get_method
 from tdof20.objects.catalog import export_models
-from tdof20.progress import console
+from tdof20.progress import console, rule
 from tdof20.scoring.scoring import run_info, run_line, score_command
 from tdof20.sim.scenes import get_scene, normalize_scene_id
 
@@ -67,7 +67,16 @@ STAGES = ("capture", "annotate", "dataset", "train", "predict", "score")
 
 
 def _stage(i: int, name: str, what: str) -> None:
-    console.rule(f"[bold]demo {i}/{len(STAGES)}: {name}[/bold] — {what}", align="left")
+    rule(f"[bold]demo {i}/{len(STAGES)}: {name}[/bold] — {what}", align="left")
+
+
+def _times_line(timings: dict[str, float], reused: list[str]) -> str:
+    """The stage times (a reused stage keeps the seconds of the run that made it) and this run's
+    own wall time, which for a resumed demo is the seconds it took to find everything done."""
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in timings.items() if k != "total")
+    line = (f"Stage times (s; a reused stage keeps the time it took when it ran): {stages}; "
+            f"this run {timings['total']:.1f} s")
+    return line + (f" (reused: {', '.join(reused)})" if reused else "")
 
 
 def _n(k: int, word: str) -> str:
@@ -197,14 +206,24 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     # the seconds of the run that made each stage's current results (a reused stage keeps its own)
     prev = read_json(out / "timings.json") if (out / "timings.json").exists() else {}
     timings: dict[str, float] = {}
+    reused: list[str] = []
+    run_t0 = time.perf_counter()
 
-    def took(stage: str, t0: float, worked: bool) -> None:
+    def took(stage: str, t0: float, worked: bool, say: bool = True) -> None:
+        """Record ``stage``'s seconds: this run's, or for a reused stage those of the run that made
+        it (``say``: print that it was reused; else the stage's own line tells, with :func:`spent`)."""
         timings[stage] = time.perf_counter() - t0 if worked or stage not in prev else prev[stage]
         if not worked:
-            console.print(f"{stage}: reused ({timings[stage]:.1f} s when it ran)")
+            reused.append(stage)
+            if say:
+                console.print(f"{stage}: {spent(stage)}")
+
+    def spent(stage: str) -> str:
+        return (f"reused ({timings[stage]:.1f} s when it ran)" if stage in reused
+                else f"in {timings[stage]:.1f} s")
 
     n_frames = 2 * len(scenes) * n_arms * steps
-    console.rule(f"[bold]tdof20 demo[/bold] — {', '.join(scenes)} -> {out}")
+    rule(f"[bold]tdof20 demo[/bold] — {', '.join(scenes)} -> {out}")
 
     # capture ------------------------------------------------------------------------------
     _stage(1, "capture", f"{_n(len(scenes), 'simulated session')}, {n_arms} arms × {steps} steps of {step_deg:g}°, "
@@ -217,8 +236,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         cs = run_capture(cfg, session, yes=True, resume_command=f"tdof20 demo --out {out} (the same options)")
         captured += cs.captured
         sessions.append(session)
-    took("capture", t0, captured > 0)
-    console.print(f"capture: {n_frames} RGB-D frames in {timings['capture']:.1f} s -> {out / 'raw'}")
+    took("capture", t0, captured > 0, say=False)
+    console.print(f"capture: {n_frames} RGB-D frames {spent('capture')} -> {out / 'raw'}")
 
     # annotate -----------------------------------------------------------------------------
     _stage(2, "annotate", "tdof20 annotate, the catalog's models as CAD models")
@@ -236,8 +255,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         console.print(summary_text(s), highlight=False)
         summaries.append(s)
         scene_dirs.append(d)
-    took("annotate", t0, changed)
-    console.print(f"annotate: {_n(len(scenes), 'scene')} in {timings['annotate']:.1f} s -> {out / 'scenes'}")
+    took("annotate", t0, changed, say=False)
+    console.print(f"annotate: {_n(len(scenes), 'scene')} {spent('annotate')} -> {out / 'scenes'}")
     warn = annotation_warnings(summaries)
     for w in warn:
         console.print(f"[yellow]annotation off target: {w}", highlight=False)
@@ -254,10 +273,10 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         st = build_dataset(scene_dirs, root)
     else:
         st = stats(root)
-    took("dataset", t0, rebuild)
+    took("dataset", t0, rebuild, say=False)
     sp = st["splits"]
-    console.print(f"dataset: {st['images']} images; simple {sp['simple_train']} train / {sp['simple_test']} test, "
-                  f"hard {sp['hard_train']} train / {sp['hard_test']} test -> {root}")
+    console.print(f"dataset: {st['images']} images {spent('dataset')}; simple {sp['simple_train']} train / "
+                  f"{sp['simple_test']} test, hard {sp['hard_train']} train / {sp['hard_test']} test -> {root}")
     sheet = out / "contact_sheet.png"  # the first scene's labels drawn over its frames (annotate's QA)
     shutil.copyfile(scene_dirs[0] / "qa" / "contact_sheet.png", sheet)
     result = {"sessions": sessions, "models": models, "scenes": scene_dirs, "annotation": summaries,
@@ -279,10 +298,12 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
               f"Dataset: {st['images']} images; TDoF20-simple {sp['simple_train']} train / {sp['simple_test']} test, "
               f"TDoF20-hard {sp['hard_train']} train / {sp['hard_test']} test.", ""]
     if not train:
+        timings["total"] = time.perf_counter() - run_t0
         write_json(out / "timings.json", {k: round(v, 2) for k, v in timings.items()})
-        md = header + ["Stage times (s; a reused stage keeps the time it took when it ran): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), "",
+        md = header + [_times_line(timings, reused), "",
                        "![contact sheet](contact_sheet.png)", ""]
         atomic_write_bytes(report, "\n".join(md).encode())
+        console.print(_times_line(timings, reused).replace("Stage times", "stage times"), highlight=False)
         console.print(f"contact sheet: {sheet}\nreport: {report}")
         result["report"] = report
         return result
@@ -331,7 +352,7 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     took("score", t0, True)
     got = read_json(scores_json)  # one results file: its summary; several: {csv stem: summary}
     scores = {m: got[results[m].stem] if len(methods) > 1 else got for m in methods}
-    timings["total"] = sum(timings.values())
+    timings["total"] = time.perf_counter() - run_t0  # this run's wall time, not the reused stages' sum
     write_json(out / "timings.json", {k: round(v, 2) for k, v in timings.items()})
     n_test = sp["simple_test"] // max(1, n_arms * sum(sp_.kind == "single" for sp_ in specs))
 
@@ -365,8 +386,7 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         "the networks learn, not the methods' accuracy (the paper trains on 26,434 images at 480×640 and "
         f"tests on 54° arcs). Here each arm position's test arc is {n_test} step(s) of {step_deg:g}° between "
         "training views; an untrained network finds no object (0 %).", "",
-        "Stage times (s; a reused stage keeps the time it took when it ran): "
-        + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), "",
+        _times_line(timings, reused), "",
         "![contact sheet](contact_sheet.png)", "",
         *[x for m in methods for x in (f"![{label(m)} loss curves](runs/{m}_simple/loss.png)", "")],
         "Scores per object: report/report.md; accuracy curves: report/*.png; results: "
@@ -374,8 +394,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
         ""]
     atomic_write_bytes(report, "\n".join(md).encode())
     console.print(text, highlight=False)
-    console.rule("[bold]demo done")
-    console.print("stage times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
+    rule("[bold]demo done")
+    console.print(_times_line(timings, reused).replace("Stage times", "stage times"), highlight=False)
     console.print(f"report: {report}")
     result.update(methods=methods, runs=runs, results=results, scores=scores, report=report)
     return result

@@ -41,7 +41,7 @@ from tdof20.experiments.agreement import CLAIMS, PAPER, agreement, agreement_csv
 from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, pct, signed
 from tdof20.formats.io import atomic_write_bytes, write_json
 from tdof20.objects import get_object
-from tdof20.scoring.report import accuracy_curve
+from tdof20.scoring.report import accuracy_curve, counted
 from tdof20.scoring.scoring import PROJ_PLOT_MAX
 
 KEY_TITLES = {"add_s": "ADD(S)", "proj2d": "2D projection"}
@@ -149,8 +149,8 @@ def protocol_table(entries: Sequence[Entry], key: str = "add_s",
         rows.append({"obj_id": o, "name": name, "asymmetric": bool(asym), "values": vals, "bold": bold})
     vals, bold = row(None)
     n_obj = max((int(e.scores["mean"].get("n", 0)) for e in entries), default=0)
-    rows.append({"obj_id": None, "name": f"mean ({n_obj} objects)", "asymmetric": False, "values": vals,
-                 "bold": bold})
+    rows.append({"obj_id": None, "name": f"mean ({counted(n_obj, 'object')})", "asymmetric": False,
+                 "values": vals, "bold": bold})
     notes = ["Bold object names (marked *) are asymmetric: their ADD(S) is the stricter ADD; the others are "
              "symmetric (ADD-S). Bold values: the best of each row within each protocol.",
              f"{MISSING}: no result for that method and protocol, or the object is not in its test part."]

@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.bop_json import (bop_json_line, by_image_id, check_nums, check_rotation, dumps_bop_json, flat,
-                                     is_int, is_num, join_bop_json, write_bop_text)
+from tdof20.formats.bop_json import (MAX_ID, bop_json_line, by_image_id, check_nums, check_rotation, dumps_bop_json,
+                                     flat, is_int, is_num, join_bop_json, write_bop_text)
 from tdof20.formats.bop_models import (MODELS_INFO, model_path, read_model_mesh, read_models_info, write_model_mesh,
                                        write_models_info)
 from tdof20.formats.io import png_header, read_bytes, read_json, read_png, write_png
@@ -158,8 +158,8 @@ def _parse_gt(path: Path, data: Any) -> dict[int, list[dict]]:
             for k in ("obj_id", "cam_R_m2c", "cam_t_m2c"):
                 if k not in e:
                     raise TdofError(f"{w}: missing field '{k}'", path)
-            if not is_int(e["obj_id"]) or e["obj_id"] < 1:
-                raise TdofError(f"{w}: obj_id must be an integer >= 1, got {e['obj_id']!r}", path)
+            if not is_int(e["obj_id"]) or not 1 <= e["obj_id"] <= MAX_ID:
+                raise TdofError(f"{w}: obj_id must be an integer from 1 to {MAX_ID}, got {e['obj_id']!r}", path)
             g = copy.deepcopy(e)
             g["cam_R_m2c"] = check_rotation(path, e["cam_R_m2c"], f"{w}: cam_R_m2c")
             g["cam_t_m2c"] = check_nums(path, e["cam_t_m2c"], 3, f"{w}: cam_t_m2c")

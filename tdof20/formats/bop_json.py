@@ -56,6 +56,10 @@ def is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+#: the largest image or object id (BOP's ids are int32; the shards store them so)
+MAX_ID = 2**31 - 1
+
+
 def is_int(v: Any) -> bool:
     """A JSON integer (not a bool)."""
     return isinstance(v, int) and not isinstance(v, bool)
@@ -93,5 +97,7 @@ def by_image_id(path: Path, data: Any) -> dict[int, Any]:
             raise TdofError(f"key {k!r} is not an integer id", path) from None
         if i < 0 or str(i) != str(k).strip():
             raise TdofError(f"key {k!r} is not a non-negative integer id", path)
+        if i > MAX_ID:
+            raise TdofError(f"key {k!r}: image ids are at most {MAX_ID} (BOP's ids are 32-bit)", path)
         out[i] = v
     return out

@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import re
+import stat
 import struct
 import tempfile
 import tomllib
@@ -25,6 +26,8 @@ from isal import isal_zlib
 from tdof20.errors import TdofError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: the largest image (pixels) any reader decodes: checked from the header, before decoding
+MAX_IMAGE_PIXELS = 8192 * 8192
 # OpenCV prints its own warnings and "[ERROR:0@...] global grfmt_png.cpp ..." lines about a corrupt
 # file; our one-line error says it instead (one line, naming the file)
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -94,14 +97,26 @@ def write_json(path: str | Path, obj: Any, indent: int | None = 2, fsync: bool =
     atomic_write_bytes(path, (dumps_json(obj, indent) + "\n").encode(), fsync=fsync)
 
 
-def read_bytes(path: str | Path, what: str = "file", limit: int | None = None) -> bytes:
+def read_bytes(path: str | Path, what: str = "file", limit: int | None = None,
+               max_size: int | None = None) -> bytes:
     """The bytes of a file (the first ``limit`` bytes when given). The one place files are read
     for the checked readers: a missing file, a folder, a file on a path through a file or a file
     that cannot be read is a one-line :class:`TdofError` naming it; ``what`` names it in the
-    message ("results file" -> "results file not found")."""
+    message ("results file" -> "results file not found"). Only regular files are read (a link to
+    /dev/zero or a FIFO is refused, never read or waited on); ``max_size``: refuse a larger file."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
+        # O_NONBLOCK: opening a FIFO does not wait for a writer; only regular files are read
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                if stat.S_ISDIR(st.st_mode):
+                    raise IsADirectoryError
+                raise TdofError(f"is not a regular file (a device, pipe or socket): not a {what}", path)
+            if max_size is not None and st.st_size > max_size:
+                raise TdofError(f"the {what} is {st.st_size / 1e6:.1f} MB, more than the {max_size / 1e6:.0f} MB "
+                                f"a {what} may have", path)
             return f.read() if limit is None else f.read(limit)
     except FileNotFoundError:
         raise TdofError(f"{what} not found", path) from None
@@ -115,10 +130,10 @@ def read_bytes(path: str | Path, what: str = "file", limit: int | None = None) -
         raise TdofError(f"cannot read the {what} ({e.strerror or type(e).__name__})", path) from None
 
 
-def read_text(path: str | Path, what: str = "file") -> str:
+def read_text(path: str | Path, what: str = "file", max_size: int | None = None) -> str:
     """A UTF-8 text file (a byte-order mark is dropped) as a string; see :func:`read_bytes`.
     Bytes that are not UTF-8 are a TdofError naming the file and the line they are on."""
-    data = read_bytes(path, what)
+    data = read_bytes(path, what, max_size=max_size)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -179,6 +194,30 @@ def check_parents(path: str | Path, option: str) -> None:
             return
 
 
+def safe_inside(root: Path, path: Path) -> Path:
+    """``path`` after checking that writing there stays inside the input folder ``root``: it lies
+    under ``root`` (no ``..`` out of it) and no existing component of it below ``root`` (``root``
+    itself excluded: a dataset may be reached through a link) is a symbolic link. A dataset
+    someone else made could point its ``.cache/`` (or any folder tdof20 writes into) at the
+    user's own folders; such a write is a one-line TdofError naming the link instead."""
+    root, path = Path(root), Path(path)
+    base = Path(os.path.normpath(root.absolute()))
+    full = Path(os.path.normpath(path.absolute()))
+    try:
+        rel = full.relative_to(base)
+    except ValueError:
+        raise TdofError(f"tdof20 does not write outside the dataset folder {root}", path) from None
+    cur = base
+    for part in rel.parts:
+        cur = cur / part
+        if cur.is_symlink():
+            raise TdofError("is a symbolic link inside the dataset: tdof20 does not write through a symlink "
+                            "inside a dataset (give --cache-dir to write elsewhere)", cur)
+        if not cur.exists():
+            break
+    return path
+
+
 def _png_chunk(tag: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
 
@@ -226,6 +265,7 @@ def decode_png(data: bytes, path: str | Path = "<bytes>", kind: str = "any") -> 
     """Decode PNG bytes. kind: 'rgb' (H,W,3 uint8), 'depth' (H,W uint16), 'mask' (H,W uint8) or 'any'."""
     if not data.startswith(PNG_SIGNATURE):
         raise _not_png(data, path)
+    png_header(path, "any", data)  # a sane header (and image size) before decoding
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise TdofError("corrupt PNG: cannot be decoded", path)
@@ -256,6 +296,13 @@ def _not_png(data: bytes, path: str | Path) -> TdofError:
     return TdofError("not a PNG file (bad signature)", path)
 
 
+def check_image_pixels(h: int, w: int, path: str | Path) -> None:
+    """Refuse an image larger than :data:`MAX_IMAGE_PIXELS` (from its header, before decoding)."""
+    if int(h) * int(w) > MAX_IMAGE_PIXELS:
+        raise TdofError(f"the image is {w}x{h} ({int(w) * int(h) / 1e6:.0f} megapixels), more than the "
+                        f"{MAX_IMAGE_PIXELS / 1e6:.0f} megapixels tdof20 reads", path)
+
+
 def png_header(path: str | Path, kind: str = "any", data: bytes | None = None) -> tuple[int, int]:
     """(height, width) of a PNG from its header alone (the first 33 bytes; nothing is decoded),
     checked against ``kind`` as :func:`decode_png` would: 'rgb' an 8-bit RGB(A) image, 'depth' a
@@ -271,6 +318,7 @@ def png_header(path: str | Path, kind: str = "any", data: bytes | None = None) -
     w, h, bits, colour = struct.unpack(">IIBB", data[16:26])
     if w == 0 or h == 0:
         raise TdofError(f"corrupt PNG: its header gives a {w}x{h} image", path)
+    check_image_pixels(h, w, path)
     found = f"a {PNG_COLOUR_TYPES.get(colour, f'colour type {colour}')} PNG of {bits} bits per sample"
     if kind == "rgb" and not (bits == 8 and colour in (2, 6)):
         raise TdofError(f"expected an 8-bit colour PNG, found {found}", path)

@@ -9,6 +9,7 @@ import io
 import math
 import pickle
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import read_bytes, read_json, read_text
+from tdof20.formats.io import check_image_pixels, read_bytes, read_json, read_text
 
 __all__ = ["read_numbers", "read_classes", "Intrinsics", "depth_scale_mm", "read_intrinsics", "load_pickle", "FramePose",
            "read_pose", "read_class_mask", "image_size"]
@@ -201,12 +202,13 @@ def read_pose(path: Path, n_classes: int) -> FramePose:
         raise TdofError("'poses' and 'cls_ids' must be numeric arrays", path) from None
     if len(cls) == 0:
         raise TdofError("'cls_ids' is empty: a frame needs at least one object", path)
-    if not np.all(cls == np.round(cls)):
+    if not np.isfinite(cls).all() or not np.all(cls == np.round(cls)):
         raise TdofError(f"'{ck}' must hold integer class ids, got {cls.tolist()}", path)
-    cls = cls.astype(np.int64)
-    bad = [int(c) for c in cls if not 1 <= c <= n_classes]
+    bad = [c for c in cls.tolist() if not 1 <= c <= n_classes]  # before the cast: 1e40 stays 1e40
     if bad:
-        raise TdofError(f"class id {bad[0]} is not in classes.txt (ids 1..{n_classes})", path)
+        shown = int(bad[0]) if abs(bad[0]) < 1e15 else f"{bad[0]:g}"
+        raise TdofError(f"class id {shown} is not in classes.txt (ids 1..{n_classes})", path)
+    cls = cls.astype(np.int64)
     if not np.isfinite(P).all():
         raise TdofError("'poses' holds NaN or inf", path)
     Rt, layout = _as_poses(P, len(cls), path)
@@ -219,7 +221,11 @@ def read_pose(path: Path, n_classes: int) -> FramePose:
                             f"(|R R^T - I| = {err[i]:.2g}, det {det[i]:.3g})", path)
     c3 = None
     if "center_3ds" in keys:
-        c3 = np.asarray(d[keys["center_3ds"]], dtype=np.float64)
+        try:
+            c3 = np.asarray(d[keys["center_3ds"]], dtype=np.float64)
+        except (TypeError, ValueError):  # a string, a dict, a ragged list
+            raise TdofError(f"'center_3ds' must be a numeric (N,3) array with N = {len(cls)}, got "
+                            f"{type(d[keys['center_3ds']]).__name__}", path) from None
         if c3.shape == (3, len(cls)) and c3.shape != (len(cls), 3):
             c3 = c3.T
         c3 = c3.reshape(-1, 3) if c3.size == 3 * len(cls) else None
@@ -234,9 +240,14 @@ def read_class_mask(path: Path) -> np.ndarray:
 
     data = read_bytes(path, "mask file")
     try:
-        im = Image.open(io.BytesIO(data))
+        with warnings.catch_warnings():  # our own size bound below says it in one line
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(io.BytesIO(data))
         mode = im.mode
+        check_image_pixels(im.size[1], im.size[0], path)  # from the header, before decoding
         a = np.asarray(im)
+    except TdofError:
+        raise
     except Exception as e:
         raise TdofError(f"cannot read the mask ({type(e).__name__}: {e})", path) from None
     if a.ndim == 3:
@@ -261,5 +272,6 @@ def image_size(path: Path, what: str) -> tuple[int, int]:
         raise TdofError(f"cannot read the {what} ({type(e).__name__}: {e})", path) from None
     if what == "colour image" and fmt != "JPEG":
         raise TdofError(f"expected a JPEG colour image, found {fmt}", path)
+    check_image_pixels(h, w, path)
     return h, w
 

@@ -122,11 +122,24 @@ def _listing(folder: Path) -> dict[str, str]:
         raise TdofError("is a file, not a folder", folder) from None
 
 
+#: the largest list file read (the release's are under 2 MB)
+MAX_LIST_BYTES = 256 * 2**20
+#: the largest frame number used as an im_id (BOP's ids are int32; larger stems number by position)
+MAX_ID = 2**31 - 1
+#: the largest multi_data sequence number (its scene id is n_classes + 1 + NN)
+MAX_SEQ = 9999
+
+
+def _seq_number(tok: str) -> int | None:
+    """A multi_data sequence number: ASCII digits, at most MAX_SEQ; else None."""
+    return int(tok) if re.fullmatch(r"[0-9]{1,6}", tok) and int(tok) <= MAX_SEQ else None
+
+
 def _im_ids(stems: list[str]) -> tuple[dict[int, str], str]:
     nums = {}
     for s in stems:
-        m = re.search(r"(\d+)$", s)
-        nums[s] = int(m.group(1)) if m else None
+        m = re.search(r"([0-9]+)$", s)  # ASCII digits only (int() would also take "²" or "٣")
+        nums[s] = int(m.group(1)) if m and int(m.group(1)) <= MAX_ID else None
     if stems and all(v is not None for v in nums.values()) and len(set(nums.values())) == len(stems):
         return {nums[s]: s for s in stems}, "im_id = the number at the end of the frame stem (000123 -> 123)"
     return {i: s for i, s in enumerate(sorted(stems))}, "im_id = the frame's position in sorted stem order"
@@ -145,8 +158,9 @@ def _scene_folders(root: Path, classes: list[str]) -> dict[str, Path]:
     if md.is_dir():
         for p in sorted(md.iterdir()):
             if p.is_dir() and not p.name.startswith("."):
-                if not p.name.isdigit():
-                    raise TdofError("a multi_data sequence folder must be named by its number (00-19)", p)
+                if _seq_number(p.name) is None:
+                    raise TdofError(f"a multi_data sequence folder must be named by its number (00-19, at most "
+                                    f"{MAX_SEQ}; ASCII digits), not {p.name!r}", p)
                 name = f"multi/{int(p.name):02d}"
                 if name in out:
                     raise TdofError(f"two folders are sequence {name}", p)
@@ -182,7 +196,7 @@ def _parse_line(line: str, classes: list[str], folders: dict[str, Path],
             form = f"{p}/<{'class' if p == 'single_data' else 'NN'}>/{mid + '/' if mid else ''}<stem>{ext}"
             if p == "single_data":
                 return (f"single/{tok}" if tok in classes else None), stem, form
-            return (f"multi/{int(tok):02d}" if tok.isdigit() else None), stem, form
+            return (f"multi/{int(tok):02d}" if _seq_number(tok) is not None else None), stem, form
     if len(parts) >= 2:
         tok, mid = parts[-2], ""
         if tok in FRAME_FILES or tok in OPTIONAL_DIRS:
@@ -190,7 +204,7 @@ def _parse_line(line: str, classes: list[str], folders: dict[str, Path],
             tok = parts[-3] if len(parts) >= 3 else ""
         if tok in classes:
             return f"single/{tok}", stem, f"<class>/{mid}<stem>{ext}"
-        if tok.isdigit():
+        if _seq_number(tok) is not None:
             return f"multi/{int(tok):02d}", stem, f"<NN>/{mid}<stem>{ext}"
         return None, stem, f"<?>/{mid}<stem>{ext}"
     where = stem_index.get(stem, [])
@@ -215,7 +229,7 @@ def read_release(src: str | Path, scenes: list[str] | None = None) -> Release:
         wanted = []
         for s in scenes:
             s = str(s).strip()
-            m = re.fullmatch(r"multi/(\d{1,2})", s)
+            m = re.fullmatch(r"multi/([0-9]{1,2})", s)
             s = f"multi/{int(m.group(1)):02d}" if m else s
             if s not in folders:
                 raise TdofError(f"scene {s!r} is not in the release (found: {', '.join(folders) or 'none'})", root)
@@ -237,7 +251,7 @@ def read_release(src: str | Path, scenes: list[str] | None = None) -> Release:
             continue
         files[key] = path
         entries, seen, kinds = [], {}, Counter()
-        for n, line in enumerate(read_text(path, "list file").splitlines(), 1):
+        for n, line in enumerate(read_text(path, "list file", max_size=MAX_LIST_BYTES).splitlines(), 1):
             if not line.strip() or line.strip().startswith("#"):
                 continue
             scene, stem, form = _parse_line(line, classes, folders, stem_index)

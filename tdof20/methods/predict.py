@@ -27,7 +27,7 @@ from tdof20.dataset.results import write_results_csv
 from tdof20.dataset.validation import part_images
 from tdof20.errors import TdofError
 from tdof20.formats import write_json
-from tdof20.formats.io import check_parents
+from tdof20.formats.io import check_parents, safe_inside
 from tdof20.methods.data import SceneImages, TransformedDataset, collate, worker_init
 from tdof20.methods.runs import depth_mode_of, open_run
 from tdof20.methods.train import amp_dtype, select_device, to_device
@@ -182,6 +182,8 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
         net = net.to(memory_format=torch.channels_last)
     depth_mode = depth_mode_of(cfg)
     if depth_mode == "restored":  # rendered once (cached) where the dataset has none
+        if cache_dir is None:  # ROOT/.cache: no symlink out of the dataset
+            safe_inside(Path(dataset_root), Path(dataset_root) / ".cache")
         open_dataset(dataset_root, scene_folder, cache_dir=cache_dir).render_restored(images, scene_folder,
                                                                                        show_progress=progress)
     data = TransformedDataset(SceneImages(dataset_root, images, labels=labels, restored=depth_mode == "restored",

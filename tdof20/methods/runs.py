@@ -117,6 +117,14 @@ def read_checkpoint(path: str | Path, needs: tuple[str, ...] = ("model",), advic
         why = ("truncated: it begins like a torch checkpoint but its end is missing" if truncated else
                "not a torch checkpoint: not the zip archive torch.save writes")
         raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {why}){advice}", path)
+    try:  # torch.load does not check the zip's CRCs: a damaged weight would load as garbage
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except (OSError, zipfile.BadZipFile, EOFError) as e:
+        bad = f"? ({type(e).__name__})"
+    if bad is not None:
+        raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; damaged: its member {bad} fails "
+                        f"its CRC check){advice}", path)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except Exception as e:  # a damaged file can make the unpickler fail in any way
@@ -251,9 +259,21 @@ def parameters_digest(net: torch.nn.Module) -> str:
 
 
 def save_atomic(obj, path: Path) -> None:
+    """torch.save into a temporary file beside ``path``, then rename: a failed write (disk full)
+    removes the temporary file, keeps the previous ``path`` and is a one-line TdofError."""
     tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, (OSError, RuntimeError)):
+            why = e.strerror if isinstance(e, OSError) and e.strerror else (str(e).strip().splitlines() or [""])[0][:80]
+            if "unexpected pos" in why or "file write failed" in why:
+                why = "the write failed: is the disk full?"
+            kept = f"the previous {path.name} is kept" if path.exists() else "nothing was written"
+            raise TdofError(f"cannot be written ({why}); {kept}", path) from None
+        raise
 
 
 def drop_optimizer(run: str | Path) -> int:

@@ -73,7 +73,7 @@ from tdof20.methods.runs import (CHECKPOINT, CONFIG, RUN_VERSION, check_run_fold
                                  open_config, parameters_digest, read_checkpoint, read_run_config, run_classes,
                                  save_atomic)
 from tdof20.methods.runs import load_run  # noqa: F401  (re-exported: tests/test_dataset_reader.py imports it here)
-from tdof20.methods.train_data import images_digest, shard_for, train_images
+from tdof20.methods.train_data import dataset_digest, images_digest, shard_for, train_images
 from tdof20.progress import console, progress as progress_bar
 
 LR_SCHEDULES = ("cosine", "step")
@@ -185,6 +185,9 @@ def _check_same(saved: dict, new: dict, path: Path) -> None:
     pairs += [(key, saved.get(key), new.get(key)) for key in ("image_size", "depth_mode", "split")]
     pairs += [("part", saved.get("part", "train"), new.get("part", "train")),
               ("the list of training images", saved.get("images_sha256"), new.get("images_sha256"))]
+    if saved.get("dataset_sha256") is not None:  # a run from before issue 22 recorded none
+        pairs.append(("the dataset's content (digest of its models_info, images and labels)",
+                      saved.get("dataset_sha256"), new.get("dataset_sha256")))
     pairs.append(("classes (object ids)", run_classes(saved), run_classes(new)))
     pairs.append(("batch_size", saved.get("train", {}).get("batch_size"), new["train"]["batch_size"]))
     for key, old, now in pairs:
@@ -301,6 +304,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if shard is None:
             ds.part_frames(split, "train", "train on")
         subset, part = train_images(dataset_root, split, part, images) if shard is None else (None, "train")
+        # what the run's data is made from (a --shard's own objects are checked against the dataset)
+        data_digest = dataset_digest(dataset_root, split, subset) if shard is None else None
 
         dev = select_device(device)
         if world > 1:
@@ -335,7 +340,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             # the options that must not change, before the work (a native image size is known later)
             early = {"method": m.name, "image_size": saved.get("image_size") if image_size is None else
                      [int(image_size[0]), int(image_size[1])], "depth_mode": depth_mode_of(cfg), "split": split,
-                     "part": part, "images_sha256": images_digest(subset), "classes": run_classes(saved), "train": {"batch_size": batch_size},
+                     "part": part, "images_sha256": images_digest(subset), "dataset_sha256": data_digest,
+                     "classes": run_classes(saved), "train": {"batch_size": batch_size},
                      "method_config": m.config_to_data(cfg)}
             with torch.device("meta"):
                 early.update(m.run_record(m.build(cfg, saved_meta)))
@@ -364,7 +370,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             console.print("[yellow]mixed precision is for CUDA devices; training in float32")
         if main:
             out_run.mkdir(parents=True, exist_ok=True)
-        shard_path = shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir, subset, part)
+        shard_path = shard_for(dataset_root, split, out_run, shard, rank, show, cache_dir, subset, part,
+                               data_digest)
         if dist is not None:
             dist.barrier(group=wait_group)
         data = ShardDataset(shard_path)
@@ -398,7 +405,7 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                        world_size=world, device=str(dev))
         config = {"method": m.name, "version": RUN_VERSION, "method_config": m.config_to_data(cfg), "meta": _meta_json(meta),
                   "input": m.inputs, "image_size": list(image_size), "depth_mode": depth_mode_of(cfg), "split": split,
-                  "part": part, "images_sha256": images_digest(subset),
+                  "part": part, "images_sha256": images_digest(subset), "dataset_sha256": data_digest,
                   "dataset": str(dataset_root.resolve()), "shard": str(Path(shard_path).resolve()),
                   "keypoints": keypoints_to_json(meta.keypoints), "classes": list(meta.obj_ids),
                   "objects": {str(o): ds.object_name(o) for o in meta.obj_ids if o in ds.models_info},

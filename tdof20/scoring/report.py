@@ -30,6 +30,11 @@ METRIC_LABELS = {"add": "ADD", "adds": "ADD-S", "add_s": "ADD(S)", "proj2d": "2D
                  "ar": "AR"}
 
 
+def counted(n: int, word: str) -> str:
+    """``n`` and ``word``, plural unless n is 1: "1 object", "3 objects"."""
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
 def _keys(ev: Evaluation) -> list[str]:
     """The metric keys computed for ``ev``, in report order."""
     return [k for k in getattr(ev, "keys", ("n",) + tuple(METRIC_LABELS))[1:] if k in METRIC_LABELS]
@@ -73,8 +78,8 @@ def _rows(evals: Sequence[Evaluation], key: str):
         rows.append((f"{i:>2} {object_name(i, evals)}", not sym.get(i, True), vals))  # text pads ids; markdown strips
     n_obj = max((s["mean"]["n"] for s in sums), default=0)
     n_all = max((s["all"]["n"] for s in sums), default=0)
-    rows.append((f"mean ({n_obj} objects)", False, [s["mean"][key] for s in sums]))
-    rows.append((f"all ({n_all} targets)", False, [s["all"][key] for s in sums]))
+    rows.append((f"mean ({counted(n_obj, 'object')})", False, [s["mean"][key] for s in sums]))
+    rows.append((f"all ({counted(n_all, 'target')})", False, [s["all"][key] for s in sums]))
     return rows, len(ids)
 
 
@@ -148,7 +153,7 @@ def metrics_table(ev: Evaluation, markdown: bool = False) -> str:
     s = ev.summary()
     rows = [(f"{int(k):>2} {object_name(int(k), [ev])}", not ev.objects[int(k)].symmetric, v, True)
             for k, v in s["objects"].items()]
-    rows.append((f"mean ({s['mean']['n']} objects)", False, s["mean"], False))
+    rows.append((f"mean ({counted(s['mean']['n'], 'object')})", False, s["mean"], False))
     rows.append(("all", False, s["all"], True))
     return _table(f"{ev.method}: all metrics (%)", "object", rows, _keys(ev), markdown)
 

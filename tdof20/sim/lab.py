@@ -222,6 +222,14 @@ CLUTTER: dict[str, ClutterPreset] = {
 }
 
 
+# "near" variants: the same parts with the near face over the table's rim (a cabinet ~300 mm from
+# the axis, as in a crowded lab; the disk turns beneath its overhang): what the crop cannot cut off.
+for _n in ("cabinet", "box"):
+    _p = CLUTTER[_n]
+    CLUTTER[f"{_n}_near"] = ClutterPreset(f"{_n}_near", _p.what.split(",")[0] + ", near face 30 mm inside the "
+                                          "table's edge", _p.azimuth_deg, -30.0, _p.boxes, _p.material)
+
+
 def clutter_names() -> list[str]:
     return list(CLUTTER)
 

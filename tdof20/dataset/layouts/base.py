@@ -29,7 +29,7 @@ import numpy as np
 from tdof20.errors import TdofError
 from tdof20.formats.bop import (MODELS_INFO, SCENE_CAMERA, BopScene, colour_path, model_path, read_colour,
                                 read_model_mesh, read_models_info, read_scene)
-from tdof20.formats.io import png_header, read_json, read_png, write_json, write_png
+from tdof20.formats.io import png_header, read_json, read_png, safe_inside, write_json, write_png
 from tdof20.geometry.camera import PinholeCamera
 from tdof20.objects.keypoints import surface_keypoints
 from tdof20.progress import console, progress
@@ -86,6 +86,8 @@ class DatasetReader(ABC):
         self.root = Path(root)
         self.split: str | None = None
         self.cache_dir = Path(cache_dir) if cache_dir is not None else self.root / CACHE_DIR
+        #: writes into the default cache (inside the dataset) never follow a symlink (formats.io.safe_inside)
+        self._cache_inside = cache_dir is None
         self.camera: dict | None = None
         self.object_names: dict[int, str] = {}
         self._scenes: dict[Path, BopScene] = {}
@@ -205,8 +207,16 @@ class DatasetReader(ABC):
 
     @property
     def models_eval_dir(self) -> Path | None:
+        """models_eval/ when the dataset has one; a models_eval/ without its own models_info.json is
+        refused (its models are not models/'s: their diameters differ; the BOP toolkit needs it too)."""
         d = self.root / "models_eval"
-        return d if (d / MODELS_INFO).is_file() else None
+        if not d.is_dir():
+            return None
+        if not (d / MODELS_INFO).is_file():
+            raise TdofError(f"not found: a models_eval/ folder needs its own {MODELS_INFO} (its objects' diameters "
+                            "and symmetries; models/'s are not used for it): add it, or remove models_eval/",
+                            d / MODELS_INFO)
+        return d
 
     @property
     def models_info(self) -> dict[int, dict]:
@@ -342,6 +352,10 @@ class DatasetReader(ABC):
         return (self.cache_dir / "depth_restored" / self._cache_key(split) / f"{int(scene_id):06d}"
                 / f"{int(im_id):06d}.png")
 
+    def _cache_write_path(self, path: Path) -> Path:
+        """``path`` in the cache, checked by :func:`safe_inside` when the cache lies in the dataset."""
+        return safe_inside(self.root, path) if self._cache_inside else path
+
     def restored_path(self, scene_id: int, im_id: int, split: str | None = None) -> Path | None:
         """The restored depth PNG of an image: the scene's depth_restored/, else the cached render;
         None when neither exists yet."""
@@ -366,6 +380,7 @@ class DatasetReader(ABC):
         if not todo:
             return 0
         base = self.cached_restored_path(*todo[0], split).parents[2]
+        self._cache_write_path(base)
         _check_writable(base, self.root)
         if show_progress:
             console.print(f"note: {self.root} has no restored depth (depth_restored/) for {len(todo)} image(s): "
@@ -404,9 +419,9 @@ class DatasetReader(ABC):
                 model = rc.render(poses).depth if poses else np.zeros((h, w), np.float32)
                 sensor = raw.astype(np.float32) * np.float32(ds) if raw is not None else np.zeros((h, w), np.float32)
                 out = composite_model_depth(sensor, model)
-                write_png(self.cached_restored_path(sid, im, split), rc.camera.mm_to_depth(out))
+                write_png(self._cache_write_path(self.cached_restored_path(sid, im, split)), rc.camera.mm_to_depth(out))
                 bar.advance(task)
-        write_json(base.parent / "info.json", {"what": "restored depth rendered from the models and poses "
+        write_json(self._cache_write_path(base.parent / "info.json"), {"what": "restored depth rendered from the models and poses "
                                                "(tdof20.dataset.reader.render_restored)",
                                                "dataset": str(self.root.resolve())})
         return len(todo)

@@ -20,8 +20,16 @@ VSD_TAUS = np.arange(0.05, 0.51, 0.05)  # misalignment tolerances, fractions of 
 VSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # correctness thresholds of the VSD error
 
 
+# Where the renderer samples pixel (u, v) (column, row): at (u + 0.5, v + 0.5) in K's image
+# coordinates, as bop_toolkit's OpenGL renderers do (rasterisation samples window pixel centres, and
+# its projection maps K's (x, y) to window (x, y)). The distance image, as the toolkit's
+# ``depth_im_to_dist_im_fast``, scales depth at pixel (u, v) by the ray through the integer (u, v).
+RENDER_PIXEL_OFFSET = 0.5
+
+
 def ray_norms(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Camera rays (x, y, 1) = K^-1 (u, v, 1) through pixel centres (u, v) (float64), and |(x, y, 1)|."""
+    """Camera rays (x, y, 1) = K^-1 (u, v, 1) through image points (u, v) (float64), and |(x, y, 1)|.
+    The distance image uses integer (u, v); the renderer's rays use (u, v) + RENDER_PIXEL_OFFSET."""
     K = np.asarray(K, np.float64)
     y = (v - K[1, 2]) / K[1, 1]
     x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
@@ -29,7 +37,8 @@ def ray_norms(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, 
 
 
 def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Depth (H,W) along the optical axis -> distance from the camera centre (float64)."""
+    """Depth (H,W) along the optical axis -> distance from the camera centre (float64); pixel
+    (u, v)'s ray through the integer (u, v), as bop_toolkit's ``depth_im_to_dist_im_fast``."""
     h, w = depth.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     return depth.astype(np.float64) * ray_norms(K, u, v)[2]
@@ -57,8 +66,9 @@ def vsd_from_depths(depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.
 
 class DepthRenderer:
     """Depth images of one object model by ray casting (open3d RaycastingScene, built once in
-    the model frame; the rays move into the model frame). Pixel centres at integer (u, v); depth
-    along the optical axis in mm, 0 where the ray misses."""
+    the model frame; the rays move into the model frame). Pixel (u, v) samples the ray through
+    (u + 0.5, v + 0.5), bop_toolkit's renderers' pixel centres; depth along the optical axis in
+    mm, 0 where the ray misses."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         # lazy: open3d (and tdof20.geometry.raycast, which imports it at top level)
@@ -97,7 +107,7 @@ class DepthRenderer:
 
     def render(self, R, t, K, width: int, height: int) -> np.ndarray:
         """(height, width) float32 depth of the model at pose (R, t): every pixel cast."""
-        v, u = np.mgrid[0:height, 0:width].reshape(2, -1).astype(np.float64)
+        v, u = np.mgrid[0:height, 0:width].reshape(2, -1).astype(np.float64) + RENDER_PIXEL_OFFSET
         x, y, _ = ray_norms(K, u, v)
         R = np.asarray(R, np.float64)
         t = np.asarray(t, np.float64).reshape(3)
@@ -120,7 +130,8 @@ class DepthRenderer:
         near = (z <= 1.0).any(axis=1)  # the projection is unbounded: cast everything
         gone = (z <= 0.0).all(axis=1)  # rays (depth > 0) cannot reach it: nothing to see
         zz = np.where(z > 0, H[..., 2], 1.0)
-        u, v = H[..., 0] / zz, H[..., 1] / zz
+        # pixel indices: pixel (u, v) samples (u, v) + RENDER_PIXEL_OFFSET
+        u, v = H[..., 0] / zz - RENDER_PIXEL_OFFSET, H[..., 1] / zz - RENDER_PIXEL_OFFSET
         out = np.stack([np.floor(v.min(1)) - 2, np.ceil(v.max(1)) + 3,
                         np.floor(u.min(1)) - 2, np.ceil(u.max(1)) + 3], axis=1)
         lim = np.array([height, height, width, width], np.float64)
@@ -215,13 +226,12 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
             Kj = Ks[j]
             v = ys + V0[j]
             u = xs + U0[j]
-            y = (v - Kj[1, 2]) / Kj[1, 1]
-            x = (u - Kj[0, 2] - Kj[0, 1] * y) / Kj[0, 0]
+            x, y, _ = ray_norms(Kj, u + RENDER_PIXEL_OFFSET, v + RENDER_PIXEL_OFFSET)  # the render's rays
             Rj = R[j]
             for i in range(3):  # R^T (x, y, 1): the rays in the model frame
                 rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
             rays[a:b, :3] = (-Rj.T @ t[j]).astype(np.float32)
-            q = np.sqrt(x * x + y * y + 1.0)
+            q = ray_norms(Kj, u.astype(np.float64), v.astype(np.float64))[2]  # distance_image's norm
             nrm[a:b] = q
             dt[a:b] = depth_test[image[j]][v, u] * q
             cidx[a:b] = fl + off[j]

@@ -1,0 +1,137 @@
+"""The server's commands, for the main ``tdof20`` app to mount: the ``serve`` group (run the
+server; ``worker``; ``user add|token|revoke|list``), ``submit`` and ``publish`` (``tdof20 dataset
+publish``). ``app`` holds all three for a quick mount and for tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from tdof20.errors import TdofError
+from tdof20.server import auth
+from tdof20.server.client import submit
+from tdof20.server.config import DAILY_LIMIT, LEASE_S, MAX_UPLOAD_BYTES, ServerConfig
+from tdof20.server.db import init_db, make_engine
+from tdof20.server.publish import publish
+from tdof20.server.worker import run_worker
+
+DATA_HELP = "the server's folder: file store (and server.db when --db is not given)"
+DB_HELP = "database URL: sqlite:///PATH (default DATA/server.db) or postgresql://USER@HOST/DB"
+
+serve_app = typer.Typer(help="The benchmark server: run it, its workers, its users.", invoke_without_command=True)
+user_app = typer.Typer(no_args_is_help=True, help="Manage the server's users and their API tokens.")
+serve_app.add_typer(user_app, name="user")
+app = typer.Typer(no_args_is_help=True, help="The benchmark server's commands.")
+app.add_typer(serve_app, name="serve")
+
+
+@serve_app.callback()
+def serve(ctx: typer.Context,
+          dataset: Optional[Path] = typer.Option(None, help="the full dataset (with test labels) to score against"),
+          data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+          db: Optional[str] = typer.Option(None, help=DB_HELP),
+          host: str = typer.Option("127.0.0.1", help="address to listen on"),
+          port: int = typer.Option(8020, help="port"),
+          max_upload: int = typer.Option(MAX_UPLOAD_BYTES, help="largest results file, bytes"),
+          daily_limit: int = typer.Option(DAILY_LIMIT, help="submissions per user per 24 hours"),
+          secure_cookies: bool = typer.Option(False, help="mark cookies Secure (behind HTTPS)")) -> None:
+    """``tdof20 serve --dataset ROOT [--db URL] [--host H --port P]``: run the HTTP server (scoring
+    happens in ``tdof20 serve worker`` processes)."""
+    if ctx.invoked_subcommand is not None:
+        return
+    if dataset is None:
+        raise TdofError("give --dataset ROOT (the full dataset the server scores against)")
+    import uvicorn
+
+    from tdof20.server.app import create_app
+
+    cfg = ServerConfig(dataset=dataset, data=data, db=db, max_upload_bytes=max_upload, daily_limit=daily_limit,
+                       secure_cookies=secure_cookies)
+    uvicorn.run(create_app(cfg), host=host, port=port, log_level="info")
+
+
+@serve_app.command("worker")
+def worker(dataset: Path = typer.Option(..., help="the full dataset (with test labels)"),
+           data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+           db: Optional[str] = typer.Option(None, help=DB_HELP),
+           lease: float = typer.Option(LEASE_S, help="seconds a claim lasts unless renewed"),
+           once: bool = typer.Option(False, help="stop when the queue is empty"),
+           poll: float = typer.Option(1.0, help="seconds between looks at an empty queue"),
+           pause: float = typer.Option(0.0, help="seconds to wait after claiming a job (for drills)")) -> None:
+    """Score queued submissions (any number of workers, sharing the database and DATA)."""
+    n = run_worker(ServerConfig(dataset=dataset, data=data, db=db, lease_s=lease), once=once, poll_s=poll,
+                   pause_s=pause)
+    typer.echo(f"scored {n} submission(s)")
+
+
+def _engine(data: Path, db: Optional[str]):
+    engine = make_engine(ServerConfig(dataset=Path("."), data=data, db=db).db_url)
+    Path(data).mkdir(parents=True, exist_ok=True)
+    init_db(engine)
+    return engine
+
+
+@user_app.command("add")
+def user_add(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+             db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Add a user and print its API token (shown once; only its hash is stored)."""
+    typer.echo(auth.add_user(_engine(data, db), name))
+
+
+@user_app.command("token")
+def user_token(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+               db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Give a user a new token (the old one stops working) and print it."""
+    typer.echo(auth.new_token(_engine(data, db), name))
+
+
+@user_app.command("revoke")
+def user_revoke(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+                db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Revoke a user's token and end its sessions."""
+    auth.revoke_user(_engine(data, db), name)
+    typer.echo(f"revoked {name}")
+
+
+@user_app.command("list")
+def user_list(data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+              db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """The users, and which are revoked."""
+    for u in auth.list_users(_engine(data, db)):
+        typer.echo(f"{u['name']}{'  (revoked)' if u['revoked'] else ''}")
+
+
+@app.command("submit")
+def submit_command(results: Path = typer.Argument(..., help="a BOP results CSV"),
+                   server: str = typer.Option(..., help="the server's URL, e.g. http://127.0.0.1:8020"),
+                   token: str = typer.Option(..., envvar="TDOF20_TOKEN", help="your API token"),
+                   method: str = typer.Option(..., help="the method's name"),
+                   split: str = typer.Option(..., help="the protocol: simple or hard"),
+                   description: str = typer.Option("", help="the method in a few lines"),
+                   authors: str = typer.Option("", help="authors"),
+                   hardware: str = typer.Option("", help="the hardware the times were measured on"),
+                   time_per_image: str = typer.Option("", help="e.g. '34 ms'"),
+                   training_data: str = typer.Option("", help="what the method was trained on"),
+                   public: bool = typer.Option(False, help="show it on the leaderboard once scored")) -> None:
+    """Submit a results file to a benchmark server."""
+    out = submit(results, server, token, method, split, description, authors, hardware, time_per_image,
+                 training_data, public)
+    typer.echo(f"submitted {out['uid']}: {out['status']} ({server.rstrip('/')}/s/{out['uid']})")
+    for w in out.get("warnings", []):
+        typer.echo(f"warning: {w}")
+
+
+@app.command("publish")
+def publish_command(root: Path = typer.Argument(..., help="the full dataset (tdof20's layout)"),
+                    out: Path = typer.Option(..., help="the new folder of the public release"),
+                    split: Optional[list[str]] = typer.Option(None, help="protocols whose test labels are hidden "
+                                                                          "(default: all)")) -> None:
+    """Write the public release: the dataset without its test images' labels."""
+    info = publish(root, out, split)
+    typer.echo(f"wrote {out}: {info['hidden_test_images']} test images without labels, "
+               f"{info['label_files_dropped']} label files left out")
+
+
+__all__ = ["app", "publish_command", "serve", "serve_app", "submit_command", "user_app", "worker"]

@@ -1,0 +1,58 @@
+"""``tdof20 submit R.csv --server URL --token T --method NAME --split S``: one multipart POST to
+the server's API (the Python standard library; bounded timeout); prints the server's one-line refusal."""
+
+from __future__ import annotations
+
+import json
+import secrets
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from tdof20.errors import TdofError
+from tdof20.formats.io import read_text
+
+TIMEOUT_S = 120.0
+
+
+def _multipart(fields: dict[str, str], filename: str, data: bytes) -> tuple[bytes, str]:
+    boundary = "tdof20-" + secrets.token_hex(12)
+    parts = []
+    for k, v in fields.items():
+        parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n'.encode())
+    safe = filename.replace('"', "_").replace("\r", "_").replace("\n", "_")
+    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="{safe}"\r\n'
+                 f"Content-Type: text/csv\r\n\r\n".encode() + data + b"\r\n")
+    parts.append(f"--{boundary}--\r\n".encode())
+    return b"".join(parts), f"multipart/form-data; boundary={boundary}"
+
+
+def submit(results: str | Path, server: str, token: str, method: str, split: str, description: str = "",
+           authors: str = "", hardware: str = "", time_per_image: str = "", training_data: str = "",
+           public: bool = False) -> dict:
+    """Submit a results file; returns the server's status of it ({"uid", "status", ...})."""
+    path = Path(results)
+    data = read_text(path, "results file").encode()
+    fields = {"method": method, "split": split, "description": description, "authors": authors,
+              "hardware": hardware, "time_per_image": time_per_image, "training_data": training_data,
+              "public": "true" if public else "false"}
+    body, ctype = _multipart(fields, path.name, data)
+    url = server.rstrip("/") + "/api/submissions"
+    if not url.startswith(("http://", "https://")):
+        raise TdofError(f"--server must be an http:// or https:// URL, got {server[:60]!r}")
+    req = urllib.request.Request(url, data=body, method="POST",
+                                 headers={"Content-Type": ctype, "Authorization": f"Bearer {token}"})
+    try:
+        with urllib.request.urlopen(req, timeout=TIMEOUT_S) as r:
+            return json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        try:
+            detail = json.loads(e.read()).get("detail", "")
+        except (ValueError, AttributeError):
+            detail = e.reason
+        raise TdofError(f"the server refused the submission ({e.code}): {detail}", path) from None
+    except (urllib.error.URLError, OSError) as e:
+        raise TdofError(f"cannot reach the server {server}: {getattr(e, 'reason', e)}") from None
+
+
+__all__ = ["submit"]

@@ -1,0 +1,192 @@
+"""The server's state: SQLAlchemy Core tables in an embedded SQLite file (the default) or in
+PostgreSQL (``--db postgresql://...``), and the job queue's atomic claim with an expiring lease.
+
+Tables: ``users`` (name, token id, argon2 hash of the token's secret, revoked), ``sessions``
+(page sign-ins: sha256 of the cookie, CSRF token, expiry), ``submissions`` (owner, method and its
+description, protocol, stored file, status, result JSON) and ``jobs`` (one per submission: state
+queued | running | done | failed | cancelled, the current claim, its lease, attempts, stage).
+``meta`` records the schema version; a database of a newer version is refused.
+
+Claiming is atomic: PostgreSQL ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite takes its single
+writer lock for every transaction (``BEGIN IMMEDIATE``). A claim carries a random token and a lease;
+a worker extends the lease while it scores, and its result is recorded only while its claim is
+still the job's (:func:`finish_job`), so a job whose worker died is claimed again after the lease
+and each submission gets exactly one result.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import (Boolean, Column, Engine, Float, ForeignKey, Integer, MetaData, String, Table, Text, and_,
+                        create_engine, event, or_, select, update)
+
+from tdof20.errors import TdofError
+
+SCHEMA_VERSION = 1
+MAX_ATTEMPTS = 3  # a job whose lease expired this many times fails
+
+metadata = MetaData()
+meta = Table("meta", metadata, Column("key", String(64), primary_key=True), Column("value", Text, nullable=False))
+users = Table(
+    "users", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("name", String(64), unique=True, nullable=False),
+    Column("token_id", String(32), unique=True, nullable=False),
+    Column("token_hash", String(255), nullable=False),
+    Column("revoked", Boolean, nullable=False, default=False),
+    Column("created", Float, nullable=False))
+sessions = Table(
+    "sessions", metadata,
+    Column("id", String(64), primary_key=True),  # sha256 of the cookie value
+    Column("user_id", Integer, ForeignKey("users.id"), nullable=False),
+    Column("csrf", String(64), nullable=False),
+    Column("expires", Float, nullable=False))
+submissions = Table(
+    "submissions", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("uid", String(32), unique=True, nullable=False),  # the public id (random)
+    Column("user_id", Integer, ForeignKey("users.id"), nullable=False, index=True),
+    Column("method", String(100), nullable=False),
+    Column("split", String(32), nullable=False),
+    Column("description", Text, nullable=False, default=""),
+    Column("authors", Text, nullable=False, default=""),
+    Column("hardware", Text, nullable=False, default=""),
+    Column("time_per_image", Text, nullable=False, default=""),
+    Column("training_data", Text, nullable=False, default=""),
+    Column("public", Boolean, nullable=False, default=False),
+    Column("filename", String(255), nullable=False),  # as uploaded: shown, never a path
+    Column("stored", String(64), nullable=False),  # the file's name in the store
+    Column("size", Integer, nullable=False),
+    Column("sha256", String(64), nullable=False),
+    Column("n_rows", Integer, nullable=False),
+    Column("status", String(16), nullable=False),  # queued | scoring | done | failed | withdrawn
+    Column("created", Float, nullable=False, index=True),
+    Column("scored", Float),
+    Column("scored_count", Integer, nullable=False, default=0),
+    Column("error", Text),  # shown to the owner (no label in it)
+    Column("result", Text))  # the summary JSON and plot names
+jobs = Table(
+    "jobs", metadata,
+    Column("id", Integer, primary_key=True),
+    Column("submission_id", Integer, ForeignKey("submissions.id"), unique=True, nullable=False),
+    Column("state", String(16), nullable=False, index=True),
+    Column("claim", String(32)),
+    Column("worker", String(128)),
+    Column("lease_until", Float),
+    Column("attempts", Integer, nullable=False, default=0),
+    Column("stage", String(64), nullable=False, default="queued"),
+    Column("started", Float),
+    Column("finished", Float))
+
+
+def make_engine(url: str) -> Engine:
+    """An engine for ``url`` (sqlite:///PATH or postgresql://...). SQLite: WAL, synchronous=FULL
+    (a commit is on disk before it returns), a 30 s busy timeout and BEGIN IMMEDIATE (one writer)."""
+    if url.startswith("postgresql://"):
+        url = "postgresql+psycopg://" + url[len("postgresql://"):]
+    if url.startswith("sqlite"):
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+
+        @event.listens_for(engine, "connect")
+        def _connect(dbapi_conn, _record):
+            dbapi_conn.isolation_level = None  # SQLAlchemy's begin event issues BEGIN
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=FULL")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.close()
+
+        @event.listens_for(engine, "begin")
+        def _begin(conn):
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+        return engine
+    if url.startswith("postgresql+psycopg://"):
+        return create_engine(url, pool_pre_ping=True)
+    raise TdofError(f"--db must be sqlite:///PATH or postgresql://..., got {url.split(':', 1)[0]}:...")
+
+
+def init_db(engine: Engine) -> None:
+    """Create the tables where missing and record the schema version; refuse a newer schema."""
+    metadata.create_all(engine)
+    with engine.begin() as c:
+        row = c.execute(select(meta.c.value).where(meta.c.key == "schema_version")).first()
+        if row is None:
+            c.execute(meta.insert().values(key="schema_version", value=str(SCHEMA_VERSION)))
+        elif int(row.value) > SCHEMA_VERSION:
+            raise TdofError(f"the database has schema version {row.value}, newer than this tdof20's "
+                            f"{SCHEMA_VERSION}: upgrade tdof20")
+
+
+@dataclass
+class Claim:
+    """A claimed job: its ids and the claim token that must still be the job's to record a result."""
+
+    job_id: int
+    submission_id: int
+    claim: str
+
+
+def claim_job(engine: Engine, worker: str, lease_s: float) -> Claim | None:
+    """Claim the oldest queued job, or a running one whose lease expired; None when there is none.
+    A job whose lease expired :data:`MAX_ATTEMPTS` times fails instead of being claimed again."""
+    while True:
+        with engine.begin() as c:
+            now = time.time()
+            q = (select(jobs.c.id, jobs.c.submission_id, jobs.c.attempts, jobs.c.state)
+                 .where(or_(jobs.c.state == "queued", and_(jobs.c.state == "running", jobs.c.lease_until < now)))
+                 .order_by(jobs.c.id).limit(1))
+            if c.dialect.name == "postgresql":
+                q = q.with_for_update(skip_locked=True)
+            row = c.execute(q).first()
+            if row is None:
+                return None
+            if row.state == "running" and row.attempts >= MAX_ATTEMPTS:
+                c.execute(update(jobs).where(jobs.c.id == row.id).values(state="failed", finished=now, claim=None))
+                c.execute(update(submissions).where(submissions.c.id == row.submission_id).values(
+                    status="failed", error=f"scoring did not finish in {MAX_ATTEMPTS} tries"))
+                continue
+            token = secrets.token_hex(16)
+            c.execute(update(jobs).where(jobs.c.id == row.id).values(
+                state="running", claim=token, worker=worker[:128], lease_until=now + lease_s,
+                attempts=row.attempts + 1, stage="claimed", started=now))
+            c.execute(update(submissions).where(submissions.c.id == row.submission_id).values(status="scoring"))
+            return Claim(row.id, row.submission_id, token)
+
+
+def heartbeat(engine: Engine, claim: Claim, lease_s: float, stage: str | None = None) -> bool:
+    """Extend the lease (and set the stage); False when the claim is no longer the job's."""
+    values: dict[str, Any] = {"lease_until": time.time() + lease_s}
+    if stage is not None:
+        values["stage"] = stage
+    with engine.begin() as c:
+        r = c.execute(update(jobs).where(and_(jobs.c.id == claim.job_id, jobs.c.claim == claim.claim,
+                                              jobs.c.state == "running")).values(**values))
+        return r.rowcount == 1
+
+
+def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | None) -> bool:
+    """Record the result (or the error) if the claim is still the job's, in one transaction;
+    returns whether it was recorded (False: the lease was lost and another worker has the job)."""
+    now = time.time()
+    with engine.begin() as c:
+        r = c.execute(update(jobs).where(and_(jobs.c.id == claim.job_id, jobs.c.claim == claim.claim,
+                                              jobs.c.state == "running"))
+                      .values(state="done" if error is None else "failed", finished=now, stage="finished"))
+        if r.rowcount != 1:
+            return False
+        c.execute(update(submissions).where(and_(submissions.c.id == claim.submission_id,
+                                                 submissions.c.status != "withdrawn")).values(
+            status="done" if error is None else "failed", scored=now, error=error,
+            result=None if result is None else json.dumps(result),
+            scored_count=submissions.c.scored_count + 1))
+        return True
+
+
+__all__ = ["Claim", "MAX_ATTEMPTS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat", "init_db", "jobs",
+           "make_engine", "meta", "metadata", "sessions", "submissions", "users"]

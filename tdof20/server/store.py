@@ -1,0 +1,94 @@
+"""The file store: DATA/submissions/<uid>.csv and DATA/results/<uid>/ (plots). An upload is
+copied in bounded chunks to a temp file in DATA/tmp/ (its size and longest line checked as it
+comes), fsynced, and renamed to its final name — a name the server makes, never the uploaded
+one — so nothing is written outside the store and a half-written file is never taken as stored."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+CHUNK = 1 << 20
+
+
+class Refused(Exception):
+    """An upload refused: an HTTP status and one line."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass
+class Stored:
+    """A file copied into the store's tmp/ (not yet accepted)."""
+
+    path: Path
+    size: int
+    sha256: str
+
+
+class Store:
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        for sub in ("submissions", "results", "tmp"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+
+    def submission_path(self, stored: str) -> Path:
+        return self.root / "submissions" / stored
+
+    def results_dir(self, uid: str) -> Path:
+        return self.root / "results" / uid
+
+    def receive(self, src: BinaryIO, max_bytes: int, max_line: int) -> Stored:
+        """Copy ``src`` into tmp/ in chunks: refused (413) beyond ``max_bytes`` or a line longer than
+        ``max_line``, (507) when the disk is full; the temp file goes on any refusal."""
+        tmp = self.root / "tmp" / f"{secrets.token_hex(16)}.part"
+        h = hashlib.sha256()
+        size = line = 0
+        try:
+            with open(tmp, "xb") as f:
+                while chunk := src.read(CHUNK):
+                    size += len(chunk)
+                    if size > max_bytes:
+                        raise Refused(413, f"the file is larger than the limit of {max_bytes} bytes")
+                    parts = chunk.split(b"\n")
+                    longest = line + len(parts[0])  # the line the previous chunk left open
+                    if len(parts) > 1:
+                        longest = max([longest] + [len(p) for p in parts[1:-1]])
+                        line = len(parts[-1])
+                    else:
+                        line = longest
+                    if max(longest, line) > max_line:
+                        raise Refused(413, f"a line is longer than the limit of {max_line} bytes")
+                    h.update(chunk)
+                    f.write(chunk)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise Refused(507, "the server's disk is full: the submission was not stored; try later") from None
+            raise
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return Stored(tmp, size, h.hexdigest())
+
+    def keep(self, stored: Stored, name: str) -> None:
+        """Move an accepted file to submissions/<name> and make the rename durable."""
+        os.replace(stored.path, self.submission_path(name))
+        fd = os.open(self.root / "submissions", os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+__all__ = ["Refused", "Store", "Stored"]

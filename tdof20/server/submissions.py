@@ -1,0 +1,162 @@
+"""Submissions: accept one (limits, strict checks, durable store, queue), read them back as their
+owner or the public may see them, withdraw, and the leaderboard. The pages and the API both
+call these; what they return holds no test label (docs/server.md)."""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from dataclasses import dataclass, field
+from typing import BinaryIO
+
+from sqlalchemy import Engine, and_, func, insert, select, update
+
+from tdof20.errors import TdofError
+from tdof20.server.db import jobs, submissions, users
+from tdof20.server.facts import DatasetFacts
+from tdof20.server.store import Refused, Store
+
+TEXT_FIELDS = {"method": 100, "description": 4000, "authors": 1000, "hardware": 500, "time_per_image": 100,
+               "training_data": 1000}
+LEADERBOARD_METRICS = ("add_s", "proj2d", "adds", "add", "auc_adds", "auc_add_s", "ar", "ar_mssd", "ar_mspd",
+                       "ar_vsd")
+
+
+@dataclass
+class Fields:
+    """What a researcher says about a submission (BOP asks for authors, hardware, time, training data)."""
+
+    method: str
+    split: str
+    description: str = ""
+    authors: str = ""
+    hardware: str = ""
+    time_per_image: str = ""
+    training_data: str = ""
+    public: bool = False
+    extra: dict = field(default_factory=dict)
+
+    def checked(self) -> "Fields":
+        for name, limit in TEXT_FIELDS.items():
+            v = getattr(self, name)
+            if not isinstance(v, str) or len(v) > limit:
+                raise Refused(400, f"{name} must be text of at most {limit} characters")
+            if "\x00" in v:
+                raise Refused(400, f"{name} holds a NUL character")
+        if not self.method.strip():
+            raise Refused(400, "method must not be empty")
+        return self
+
+
+def _message(e: TdofError) -> str:
+    """A reader's error without the store's path (the message is 'PATH: line N: ...')."""
+    text = str(e)
+    if e.path is not None and text.startswith(f"{e.path}: "):
+        text = text[len(str(e.path)) + 2:]
+    return text
+
+
+def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: BinaryIO, filename: str,
+           fields: Fields, max_bytes: int, max_line: int, daily_limit: int) -> dict:
+    """Check, store durably and queue one submission; returns its status dict. Refused (with an
+    HTTP status and one line) on a limit, a bad field or the first error of the strict checks;
+    nothing is stored or queued then."""
+    fields.checked()
+    if fields.split not in facts.splits:
+        raise Refused(400, f"split must be one of {', '.join(facts.splits)}")
+    with engine.begin() as c:
+        n = c.execute(select(func.count()).select_from(submissions).where(and_(
+            submissions.c.user_id == user["id"], submissions.c.created > time.time() - 86400))).scalar_one()
+    if n >= daily_limit:
+        raise Refused(429, f"limit reached: {daily_limit} submissions per user per 24 hours")
+    got = store.receive(src, max_bytes, max_line)
+    try:
+        try:
+            res = facts.check(got.path, fields.split)
+        except TdofError as e:
+            raise Refused(400, _message(e)) from None
+        uid = secrets.token_hex(8)
+        name = f"{uid}.csv"
+        store.keep(got, name)
+        now = time.time()
+        try:
+            with engine.begin() as c:
+                sid = c.execute(insert(submissions).values(
+                    uid=uid, user_id=user["id"], method=fields.method.strip(), split=fields.split,
+                    description=fields.description, authors=fields.authors, hardware=fields.hardware,
+                    time_per_image=fields.time_per_image, training_data=fields.training_data, public=fields.public,
+                    filename=(filename or "results.csv")[-255:], stored=name, size=got.size, sha256=got.sha256,
+                    n_rows=len(res), status="queued", created=now, scored_count=0)).inserted_primary_key[0]
+                c.execute(insert(jobs).values(submission_id=sid, state="queued", attempts=0, stage="queued"))
+        except BaseException:
+            store.submission_path(name).unlink(missing_ok=True)
+            raise
+    finally:
+        got.path.unlink(missing_ok=True)
+    out = get(engine, uid, user)
+    out["warnings"] = list(res.warnings)
+    return out
+
+
+def _row_dict(r, owner: bool) -> dict:
+    d = {k: r._mapping[k] for k in ("uid", "method", "split", "description", "authors", "hardware",
+                                    "time_per_image", "training_data", "public", "status", "created", "scored")}
+    d["user"] = r.user
+    if owner:
+        d.update(filename=r.filename, n_rows=r.n_rows, size=r.size, sha256=r.sha256, error=r.error,
+                 stage=r.stage, attempts=r.attempts)
+    d["result"] = json.loads(r.result) if r.result and r.status == "done" else None
+    return d
+
+
+def _query():
+    return (select(submissions, users.c.name.label("user"), jobs.c.stage, jobs.c.attempts)
+            .select_from(submissions.join(users, users.c.id == submissions.c.user_id)
+                         .join(jobs, jobs.c.submission_id == submissions.c.id)))
+
+
+def get(engine: Engine, uid: str, viewer: dict | None) -> dict:
+    """One submission as ``viewer`` may see it: its owner always, others only a public one not
+    withdrawn. 404 otherwise (whether it exists is not said)."""
+    with engine.begin() as c:
+        r = c.execute(_query().where(submissions.c.uid == str(uid)[:32])).first()
+    owner = r is not None and viewer is not None and r.user_id == viewer["id"]
+    if r is None or not (owner or (r.public and r.status != "withdrawn")):
+        raise Refused(404, "no such submission")
+    return _row_dict(r, owner)
+
+
+def mine(engine: Engine, user: dict) -> list[dict]:
+    with engine.begin() as c:
+        rows = c.execute(_query().where(submissions.c.user_id == user["id"]).order_by(submissions.c.id.desc()))
+        return [_row_dict(r, True) for r in rows]
+
+
+def withdraw(engine: Engine, uid: str, user: dict) -> dict:
+    """The owner withdraws a submission: off the leaderboard, its job cancelled if not yet scored."""
+    with engine.begin() as c:
+        r = c.execute(select(submissions.c.id, submissions.c.user_id).where(submissions.c.uid == str(uid)[:32])).first()
+        if r is None or r.user_id != user["id"]:
+            raise Refused(404, "no such submission")
+        c.execute(update(submissions).where(submissions.c.id == r.id).values(status="withdrawn"))
+        c.execute(update(jobs).where(and_(jobs.c.submission_id == r.id, jobs.c.state == "queued"))
+                  .values(state="cancelled"))
+    return get(engine, uid, user)
+
+
+def leaderboard(engine: Engine, split: str, metric: str = "add_s") -> list[dict]:
+    """The public, scored submissions of a protocol, best first by the mean over objects of ``metric``."""
+    if metric not in LEADERBOARD_METRICS:
+        raise Refused(400, f"metric must be one of {', '.join(LEADERBOARD_METRICS)}")
+    with engine.begin() as c:
+        rows = c.execute(_query().where(and_(submissions.c.split == split, submissions.c.public.is_(True),
+                                             submissions.c.status == "done")))
+        out = [_row_dict(r, False) for r in rows]
+    for d in out:
+        d["score"] = d["result"]["summary"]["mean"].get(metric) if d["result"] else None
+    out.sort(key=lambda d: (d["score"] is None, -(d["score"] or 0.0), d["created"]))
+    return out
+
+
+__all__ = ["Fields", "LEADERBOARD_METRICS", "accept", "get", "leaderboard", "mine", "withdraw"]
