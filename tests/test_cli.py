@@ -34,7 +34,7 @@ def test_help_lists_only_built_commands():
     import re
     commands = set(re.findall(r"^│ (\w+) ", res.stdout, flags=re.M))
     assert commands == {"demo", "capture", "annotate", "dataset", "objects", "sim", "train", "predict", "benchmark",
-                        "reproduce"}
+                        "reproduce", "serve", "submit"}
 
 
 def test_annotate_help_shows_the_pipeline_options():
