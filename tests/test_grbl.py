@@ -9,38 +9,11 @@ import pytest
 
 from tdof20.capture.hardware.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblError, GrblTurntable,
                                           describe_alarm, describe_error, parse_status)
-from tdof20.capture.hardware.grbl_emulator import GrblEmulator
 from tdof20.capture.hardware.grbl_timing import move_time
 from tdof20.capture.hardware.interfaces import HardwareError
+from tests.grbl_support import ACCEL, SPEED, emu_factory, table_for  # noqa: F401 (a fixture)
 
 pytestmark = pytest.mark.timeout(20)
-
-SPEED = 360.0          # emulator max rate, units/s
-ACCEL = 3600.0         # emulator acceleration, units/s² (GRBL's own default ratio would be 432)
-
-
-@pytest.fixture
-def emu_factory():
-    made: list[GrblEmulator] = []
-
-    def make(**kw) -> GrblEmulator:
-        kw.setdefault("speed_units_per_s", SPEED)
-        kw.setdefault("accel_units_per_s2", ACCEL)
-        kw.setdefault("homing_s", 0.1)
-        emu = GrblEmulator(**kw).start()
-        made.append(emu)
-        return emu
-
-    yield make
-    for emu in made:
-        emu.stop()
-
-
-def table_for(emu: GrblEmulator, **kw) -> GrblTurntable:
-    kw.setdefault("feed_deg_per_s", 360.0)
-    kw.setdefault("timeout_s", 1.0)
-    kw.setdefault("poll_s", 0.02)
-    return GrblTurntable(emu.port, **kw)
 
 
 def test_parse_status_and_tables():

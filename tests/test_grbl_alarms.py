@@ -4,6 +4,7 @@ faithfulness on those points."""
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 
@@ -14,36 +15,16 @@ from tdof20.capture.hardware.grbl import GrblAlarm, GrblTurntable, parse_status
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
 from tdof20.capture.hardware.grbl_timing import homing_worst_case_s, move_time
 from tdof20.capture.hardware.interfaces import HardwareError
+from tests.grbl_support import ACCEL, SPEED, emu_factory  # noqa: F401 (a fixture)
+from tests.grbl_support import table_for as grbl_table_for
 
 pytestmark = pytest.mark.timeout(30)
 
-SPEED, ACCEL = 360.0, 3600.0
 # a homing cycle that searches 1.5 x 2 units at 10 units/s: ALARM:9 after about 0.3 s without a switch
 SHORT_SEARCH = {25: 600.0, 24: 600.0, 26: 10, 130: 2.0, 131: 2.0, 132: 2.0}
 
 
-@pytest.fixture
-def emu_factory():
-    made: list[GrblEmulator] = []
-
-    def make(**kw) -> GrblEmulator:
-        kw.setdefault("speed_units_per_s", SPEED)
-        kw.setdefault("accel_units_per_s2", ACCEL)
-        kw.setdefault("homing_s", 0.1)
-        emu = GrblEmulator(**kw).start()
-        made.append(emu)
-        return emu
-
-    yield make
-    for emu in made:
-        emu.stop()
-
-
-def table_for(emu: GrblEmulator, **kw) -> GrblTurntable:
-    kw.setdefault("feed_deg_per_s", 360.0)
-    kw.setdefault("timeout_s", 3.0)
-    kw.setdefault("poll_s", 0.02)
-    return GrblTurntable(emu.port, **kw)
+table_for = functools.partial(grbl_table_for, timeout_s=3.0)  # alarms and resets take longer
 
 
 def homing_fails(emu_factory) -> tuple[GrblEmulator, GrblTurntable]:

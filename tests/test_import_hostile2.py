@@ -2,7 +2,6 @@
 refusal half-way leaves --out as it was; a resumed import's mask IoU covers every frame. Real
 release files (tests/fixtures/tdof20_release.py), real PNGs."""
 
-import json
 import sys
 import subprocess
 
@@ -15,6 +14,7 @@ from tdof20.dataset.importer import import_tdof20
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
 from tests.fixtures.tdof20_release import write_tdof20_release
+from tests.import_support import interrupt_import
 
 SMALL = dict(classes=("cube_136", "goblet_180"), multi=("02",), frames_per_scene=3)
 
@@ -71,21 +71,8 @@ def test_a_resumed_import_s_mask_iou_covers_every_frame(tmp_path, monkeypatch):
     cv2.imwrite(str(p), m)
     ref = tmp_path / "ref"
     import_tdof20(src, ref, show_progress=False)
-    calls = {"n": 0}
-    real = importer.read_class_mask
-
-    def dying(path):
-        calls["n"] += 1
-        if calls["n"] == 3 + 5:  # 3 scene pre-checks, then the 5th frame (scene 2, frame 2)
-            raise KeyboardInterrupt
-        return real(path)
-
-    monkeypatch.setattr(importer, "read_class_mask", dying)
-    monkeypatch.setattr(importer, "FLUSH_EVERY", 1)
     out = tmp_path / "out"
-    with pytest.raises(KeyboardInterrupt):
-        import_tdof20(src, out, show_progress=False)
-    monkeypatch.setattr(importer, "read_class_mask", real)
+    interrupt_import(src, out, monkeypatch)
     assert import_tdof20(src, out, show_progress=False)["resumed"]
     a = read_json(out / "scenes" / "000002" / "scene_info.json")
     b = read_json(ref / "scenes" / "000002" / "scene_info.json")

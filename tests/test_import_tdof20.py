@@ -17,6 +17,7 @@ from tdof20.errors import TdofError
 from tdof20.formats import read_json, read_png, read_scene
 from tdof20.formats.tdof20_release import load_pickle
 from tests.fixtures.tdof20_release import write_tdof20_release
+from tests.import_support import interrupt_import
 
 SMALL = dict(classes=("cube_136", "goblet_180"), multi=("02",), frames_per_scene=3)
 LIST_KEYS = {"simple_train": "train_data_list.txt", "simple_test": "test_data_list.txt",
@@ -279,19 +280,7 @@ def test_interrupted_import_resumes(tmp_path, monkeypatch):
     ref = tmp_path / "ref"
     import_tdof20(tmp_path / "src", ref, show_progress=False)
     out = tmp_path / "out"
-    calls = {"n": 0}
-    real = importer.read_class_mask
-
-    def dying(path):
-        calls["n"] += 1
-        if calls["n"] == 3 + 5:  # 3 scene pre-checks, then the 5th frame (scene 2, frame 2)
-            raise KeyboardInterrupt
-        return real(path)
-
-    monkeypatch.setattr(importer, "read_class_mask", dying)
-    monkeypatch.setattr(importer, "FLUSH_EVERY", 1)
-    with pytest.raises(KeyboardInterrupt):
-        import_tdof20(tmp_path / "src", out, show_progress=False)
+    interrupt_import(tmp_path / "src", out, monkeypatch)
     # the import works beside --out and moves its folder into place at the end
     work = tmp_path / ".out.importing"
     assert not out.exists()
@@ -303,7 +292,6 @@ def test_interrupted_import_resumes(tmp_path, monkeypatch):
     with pytest.raises(TdofError) as e:
         import_tdof20(tmp_path / "other", out, show_progress=False)
     _one_line(e, "unfinished import")
-    monkeypatch.setattr(importer, "read_class_mask", real)
     s = import_tdof20(tmp_path / "src", out, show_progress=False)
     assert s["written"] and s["resumed"] and not (out / importer.MARKER).exists() and not work.exists()
     files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
