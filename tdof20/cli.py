@@ -69,7 +69,7 @@ class _AnnotateGroup(typer.core.TyperGroup):
 annotate_app = typer.Typer(cls=_AnnotateGroup, no_args_is_help=True,
                            help="Annotate a raw session: RAW_DIR --out SCENE_DIR (register, reconstruct, model, "
                                 "place, label, qa), or several: RAW_DIR... --out DIR (DIR/multi/08 ...); evaluate "
-                                "labels against the simulator's truth.")
+                                "labels against the simulator's truth; review: correct a scene in a web app.")
 benchmark_app = typer.Typer(no_args_is_help=True, help="Score results (ADD, ADD-S, 2D projection) and profile methods.")
 app.add_typer(annotate_app, name="annotate")
 app.add_typer(benchmark_app, name="benchmark")
@@ -360,11 +360,14 @@ def dataset_build(scenes: list[Path] = typer.Argument(..., help="annotated scene
                   layout: str = typer.Option("tdof20", "--layout", help="tdof20 (both protocols, splits/) or bop (the "
                                              "standard BOP layout: train/ and test/ of one protocol)"),
                   split: Optional[str] = typer.Option(None, "--split", help="with --layout bop: the protocol (simple "
-                                                      "or hard) whose train and test parts become train/ and test/")) -> None:
+                                                      "or hard) whose train and test parts become train/ and test/"),
+                  allow_flagged: bool = typer.Option(False, "--allow-flagged", help="build even from scenes with "
+                                                     "unresolved flags (frames not labelled, failed objects: tdof20 "
+                                                     "annotate review)")) -> None:
     """Gather annotated scenes into one BOP dataset with the TDoF20-simple and -hard splits."""
     from tdof20.dataset.build import build_dataset_in_layout
 
-    s = build_dataset_in_layout(layout, scenes, out, split=split, add=add)
+    s = build_dataset_in_layout(layout, scenes, out, split=split, add=add, allow_flagged=allow_flagged)
     _print_stats(s)
     console.print(f"dataset in {out}", markup=False)
 
@@ -513,6 +516,19 @@ def annotate_evaluate(scene: Path = typer.Argument(..., help="annotated scene fo
     print(evaluate_command(scene, truth, max_frames=max_frames, n_points=points))
 
 
+@annotate_app.command("review")
+def annotate_review(scene: Path = typer.Argument(..., help="annotated scene folder (tdof20 annotate's --out)"),
+                    port: int = typer.Option(8765, "--port", help="port of the local web app"),
+                    host: str = typer.Option("127.0.0.1", "--host", help="address to listen on (this machine by "
+                                             "default)"),
+                    open_browser: bool = typer.Option(False, "--open", help="open it in the web browser")) -> None:
+    """Review and correct an annotated scene in a local web app (frames and flags, overlays, object fits,
+    a 3D view to nudge, drag and snap); corrections go to SCENE/work/corrections.jsonl."""
+    from tdof20.review import review_command
+
+    review_command(scene, port=port, host=host, open_browser=open_browser)
+
+
 # ----------------------------------------------------------------------------------- train / predict
 def _image_size(text: Optional[str]) -> Optional[tuple[int, int]]:
     """'240x320' (height x width) or 'native' -> (240, 320) or None."""
@@ -528,8 +544,8 @@ def _image_size(text: Optional[str]) -> Optional[tuple[int, int]]:
 def _method_help(short: bool = False) -> str:
     """The registered methods (the registry imports no torch: --help stays fast)."""
     if short:
-        return ", ".join(method_names())
-    return "; ".join(f"{n}: {get_method(n).description}" for n in method_names())
+        return ", ".join(method_names(None))
+    return "; ".join(f"{n}: {get_method(n).description}" for n in method_names(None))
 
 
 @app.command("train", help="Train a method on the train part of a split (checkpoints, resume, loss curves); run "
@@ -699,8 +715,8 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          methods: str = typer.Option("hff6dof,pvnet", help="comma-separated registered methods trained, "
                                      "predicted and scored side by side"),
          image_size: str = typer.Option("60x80", help="HxW of the short training"),
-         epochs: Optional[int] = typer.Option(None, help="training epochs of every method \\[default: hff6dof 5, "
-                                              "pvnet 15]"),
+         epochs: Optional[int] = typer.Option(None, help="training epochs of every method, the same budget for "
+                                              "all \\[default: 840 images seen = 15 epochs of the default data]"),
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
@@ -728,15 +744,22 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
                   preset: Optional[str] = typer.Option(None, "--preset", help="smoke, cpu, gpu or full "
                                                        "\\[the TOML's, else smoke]"),
                   config: Optional[Path] = typer.Option(None, "--config", help="TOML over the preset (methods, "
-                                                        "\\[data], \\[train], \\[epochs], \\[ablations], \\[profile], "
+                                                        "\\[data], \\[train], \\[batch], \\[ablations], \\[profile], "
                                                         "\\[select], \\[method_options.METHOD], \\[candidates.METHOD])"),
                   dataset: Optional[Path] = typer.Option(None, "--dataset", help="a dataset root to use instead of "
-                                                         "simulating one (e.g. an imported TDoF20)")) -> None:
+                                                         "simulating one (e.g. an imported TDoF20)"),
+                  executor: str = typer.Option("local", "--executor", help="local, or ray: the independent jobs "
+                                               "(trainings, predictions) as Ray tasks with their CPUs and GPUs"),
+                  ray_address: Optional[str] = typer.Option(None, "--ray-address", help="HOST:PORT of a Ray "
+                                                            "cluster \\[a new local instance]"),
+                  gpus_per_job: Optional[float] = typer.Option(None, "--gpus-per-job", help="GPUs per Ray task "
+                                                               "\\[1 where the cluster has GPUs]")) -> None:
     """The paper's Tables 1-3 and both ablations with one command: dataset, train every method on
-    both protocols (on the train part minus its validation part), choose epochs and options on
+    both protocols with the same budget (images seen) and seeds, choose epochs and options on
     validation, predict and score the test part, profile, OUT/tables/tables.md (+ CSV, JSON,
-    plots); resumable. See docs/reproduce.md."""
-    reproduce(out, preset=preset, config=config, dataset=dataset)
+    plots); resumable, locally or on a Ray cluster. See docs/reproduce.md."""
+    reproduce(out, preset=preset, config=config, dataset=dataset, executor=executor, ray_address=ray_address,
+              gpus_per_job=gpus_per_job)
 
 
 #: a line break inside a paragraph (not a blank line), with the next line's indentation

@@ -359,8 +359,7 @@ def test_reproduce_on_an_imported_release(tmp_path):
         assert not set(val) & set(part_images(ds, split, "test"))
     cfg = tmp_path / "c.toml"
     cfg.write_text('preset = "smoke"\ndevice = "cpu"\nmethods = ["pvnet"]\n'
-                   '[train]\nimage_size = [32, 48]\nbatch_size = 4\nmax_steps = 0\nnum_workers = 0\n'
-                   '[epochs]\npvnet = 2\n'
+                   '[train]\nimage_size = [32, 48]\nbatch_size = 4\nimages = 40\nnum_workers = 0\n'
                    '[ablations]\nfuse_stages = []\nsegmentation = false\nvoting_3d = false\n'
                    '[profile]\nenabled = false\n')
     md = reproduce(tmp_path / "out", config=cfg, dataset=ds, progress=False)
@@ -375,6 +374,6 @@ def test_reproduce_on_an_imported_release(tmp_path):
     # two epochs: the kept one was chosen on the validation part carved from the released lists
     state = json.loads((tmp_path / "out" / "reproduce.json").read_text())
     for split in ("simple", "hard"):
-        job = state["jobs"][f"train/pvnet_{split}"]
+        job = state["jobs"][f"train/pvnet_{split}_s0"]
         assert [v["epoch"] for v in job["validation"]] == [1, 2] and job["kept_epoch"] in (1, 2)
     assert digest() == before

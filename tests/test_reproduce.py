@@ -1,8 +1,10 @@
 """``tdof20 reproduce`` end to end on a config still smaller than smoke: a simulated dataset
 (single/12 = juice_cup_340 and multi/08, 2 arm positions x 7 steps at 64x48), every method trained
-one step on both protocols, the fusion ablation with 1 and 3 stages, the segmentation ablation,
-predictions, scores and the tables; then a resume after a simulated kill, a changed config
-refused, and the oracle-mask result marked. Table 3's profiling is left out here (its own tests:
+on both protocols with the same budget (8 images: two steps of 4), the fusion ablation with 1 and 3
+stages, the segmentation ablation, two candidate sets chosen on validation for every compared
+row, predictions, scores and the tables; PVNet alone with 16 images (two epochs, one chosen on
+validation) killed half-way and resumed; a changed config refused, the unfair configs refused,
+and the segmentation ablation's masks. Table 3's profiling is left out here (its own tests:
 test_methods.py); the tables' rendering is tested in test_reproduce_tables.py."""
 
 from __future__ import annotations
@@ -25,14 +27,21 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 TEST = {"methods": ["pvnet", "densefusion", "ffb6d", "hff6dof"],
         "data": {"scenes": ["single/12", "multi/08"], "steps": 7, "step_deg": 5.0, "n_arms": 2, "width": 64,
                  "height": 48},
-        "train": {"image_size": [32, 48], "batch_size": 8, "max_steps": 0, "num_workers": 0},
-        "epochs": {"hff6dof": 1, "pvnet": 2, "densefusion": 1, "ffb6d": 1},
+        "train": {"image_size": [32, 48], "batch_size": 4, "images": 8, "num_workers": 0},
         "ablations": {"fuse_stages": [1, 3], "segmentation": True, "voting_3d": True},
         "profile": {"enabled": False}, "device": "cpu",
         "method_options": {"ffb6d": {"n_points": 256, "meanshift_iters": 5, "max_votes": 200},
                            "densefusion": {"n_points": 100, "crop_size": 32, "min_points": 10},
                            "pvnet": {"max_rounds": 2}, "hff6dof": {"n_hyp": 32, "max_points": 200}},
-        "candidates": {"pvnet": {"inlier_cos": [0.99, 0.9]}}}
+        "candidates": {"pvnet": {"inlier_cos": [0.99, 0.9]}, "hff6dof": {"depth_mode": ["filled", "raw"]},
+                       "densefusion": {"refine_iterations": [1, 0]}, "ffb6d": {"bandwidth_mm": [40.0, 20.0]}}}
+
+
+#: PVNet alone, two epochs (16 images), its epoch and its inlier_cos chosen on validation
+PVNET = {**json.loads(json.dumps(TEST)), "methods": ["pvnet"], "train": {**TEST["train"], "batch_size": 8,
+                                                                          "images": 16},
+         "ablations": {"fuse_stages": [], "segmentation": False, "voting_3d": False},
+         "candidates": {"pvnet": {"inlier_cos": [0.99, 0.9]}}}
 
 
 class Killed(RuntimeError):
@@ -44,28 +53,28 @@ class Killed(RuntimeError):
 #: epochs, (run, inlier_cos) for PVNet's candidates, run -> ADD(S) for HFF6DoF's two rows
 VAL_EPOCH = {("pvnet_simple", 2): 0.5, ("pvnet_simple", 1): 0.25, ("pvnet_hard", 1): 0.5, ("pvnet_hard", 2): 0.25}
 VAL_OPTION = {("pvnet_simple", 0.9): 0.75, ("pvnet_hard", 0.99): 0.75}
-VAL_ROW = {"hff6dof-3d_hard": 0.5, "hff6dof_simple": 0.5}
+VAL_EPOCH = {(f"{r}_s0", k): v for (r, k), v in VAL_EPOCH.items()}
+VAL_OPTION = {(f"{r}_s0", k): v for (r, k), v in VAL_OPTION.items()}
 
 
-@pytest.fixture(scope="module")
-def done(tmp_path_factory):
-    """A reproduce killed in its fourth training call (PVNet on hard, its second epoch, after its
-    first epoch was validated), then resumed to the end; every training, prediction and scoring
-    call logged with its part, and the jobs' ends in the same log."""
-    out = tmp_path_factory.mktemp("repro") / "out"
+def _run(out, config, kill_at=None):
+    """A reproduce of ``config`` into ``out``, killed in its ``kill_at``-th training call (then
+    resumed to the end); every training, prediction and scoring call logged with its part, and the
+    jobs' ends in the same log."""
     calls: list[tuple] = []
     log: list[tuple] = []
     real_train, real_predict, real_score, real_finish = R.train_run, R.predict_run, R.score_run, R.State.finish
 
-    def flaky(root, split, run, method, cfg, epochs, show, stop_epoch=None, **options):
+    def flaky(root, split, run, method, cfg, schedule, show, stop_epoch=None, **options):
         calls.append((run.name, stop_epoch))
-        if len(calls) == 4:
+        log.append(("train", run.name, dict(schedule)))
+        if len(calls) == kill_at:
             raise Killed("simulated kill")
-        return real_train(root, split, run, method, cfg, epochs, show, stop_epoch=stop_epoch, **options)
+        return real_train(root, split, run, method, cfg, schedule, show, stop_epoch=stop_epoch, **options)
 
-    def predict(run, root, split, out_csv, cfg, show, part="test", images=None, **options):
+    def predict(run, root, split, out_csv, cfg, show, part="test", images=None, seed=0, **options):
         log.append(("predict", part, out_csv.parent.name if part == "val" else out_csv.stem, out_csv.name, options))
-        return real_predict(run, root, split, out_csv, cfg, show, part=part, images=images, **options)
+        return real_predict(run, root, split, out_csv, cfg, show, part=part, images=images, seed=seed, **options)
 
     def scorer(results_csv, root, split, part="test", targets=None):
         s = real_score(results_csv, root, split, part=part, targets=targets)
@@ -75,8 +84,7 @@ def done(tmp_path_factory):
             info = read_json(results_csv.with_name(results_csv.stem + "_info.json"))
             step = int(results_csv.stem[4:10])
             cos = info["method_config"].get("inlier_cos")
-            s["mean"]["add_s"] = (VAL_EPOCH.get((name, step), 0.0) + VAL_OPTION.get((name, cos), 0.0)
-                                  + VAL_ROW.get(name, 0.0))
+            s["mean"]["add_s"] = VAL_EPOCH.get((name, step), 0.0) + VAL_OPTION.get((name, cos), 0.0)
         return s
 
     def finish(self, job, seconds, **info):
@@ -88,16 +96,31 @@ def done(tmp_path_factory):
     mp.setattr(R, "predict_run", predict)
     mp.setattr(R, "score_run", scorer)
     mp.setattr(R.State, "finish", finish)
+    first, first_val = {}, {}
     try:
-        with pytest.raises(Killed):
-            reproduce(out, config=TEST, progress=False)
-        state = read_json(out / "reproduce.json")
-        first = dict(state["jobs"])
-        first_val = json.loads(json.dumps(state.get("validation", {})))
-        md = reproduce(out, config=TEST, progress=False)
+        if kill_at:
+            with pytest.raises(Killed):
+                reproduce(out, config=config, progress=False)
+            state = read_json(out / "reproduce.json")
+            first = dict(state["jobs"])
+            first_val = json.loads(json.dumps(state.get("validation", {})))
+        md = reproduce(out, config=config, progress=False)
     finally:
         mp.undo()
     return {"out": out, "md": md, "calls": calls, "first": first, "first_val": first_val, "log": log}
+
+
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    """Every method, both protocols, both ablations, to the end."""
+    return _run(tmp_path_factory.mktemp("repro") / "out", TEST)
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory):
+    """PVNet alone killed in its fourth training call (on hard, its second epoch, after its first
+    epoch was validated), then resumed to the end."""
+    return _run(tmp_path_factory.mktemp("repro") / "out", PVNET, kill_at=4)
 
 
 def test_end_to_end_tables_hold_every_method_and_object(done):
@@ -110,54 +133,80 @@ def test_end_to_end_tables_hold_every_method_and_object(done):
     objs = sorted({o for s in TEST["data"]["scenes"] for o in get_scene(normalize_scene_id(s)).obj_ids})
     assert [r["obj_id"] for r in t["table1"]["rows"][:-1]] == objs
     assert t["table1"]["rows"][-1]["name"].startswith("mean")
-    assert all(c["present"] for c in t["table1"]["columns"])
+    assert all(c["present"] and c["seeds"] == 1 for c in t["table1"]["columns"])
     body = list(csv.reader(io.StringIO((out / "tables" / "table2_proj2d.csv").read_text())))
-    assert len(body) == 1 + len(objs) + 1 and len(body[0]) == 3 + 10
+    assert len(body) == 1 + len(objs) + 1 and len(body[0]) == 3 + 10  # one seed: no spread columns
     fz = {r["fuse_stages"]: r for r in t["ablation_fusion"]["rows"]}
     assert fz[1]["add_s"] is not None and fz[3]["add_s"] is not None and fz[2]["add_s"] is None
     assert {c["id"] for c in t["agreement"]} >= {"hff6dof_hard_add_s", "best_fuse_stages", "seg_gain_add_s"}
+    # one seed: no claim about a difference between rows is judged
+    verdicts = {c["id"]: c["agrees"] for c in t["agreement"]}
+    assert verdicts["best_fuse_stages"] is None and verdicts["simple_above_hard"] is None
     for m in ("PVNet", "DenseFusion", "FFB6D", "HFF6DoF__bearing___PnP", "HFF6DoF__3D_voting___LSQ"):
         assert (out / "tables" / "plots" / f"accuracy_{m}.png").stat().st_size > 2000
     state = read_json(out / "reproduce.json")
     assert all(not k.startswith("train/") or (out / "runs" / k[6:] / "last.pt").exists() for k in state["jobs"])
-    assert len([k for k in state["jobs"] if k.startswith("train/")]) == 4 * 2 + 2 + 2  # + hff6dof-3d on both protocols
+    trains = {k: v for k, v in state["jobs"].items() if k.startswith("train/")}
+    segnet = R.segnet_available()
+    # 4 methods x 2 protocols, hff6dof-3d on both, fuse1, noseg (+ the segmentation network)
+    assert len(trains) == 4 * 2 + 2 + 2 + segnet
+    # the same budget for every compared row: 16 images seen, whatever the method; the row without
+    # the head counts the segmentation network's images in its own
+    seen = {k[6:-3]: v["images_seen"] for k, v in trains.items()}
+    row = {k: v for k, v in seen.items() if k not in ("hff6dof_noseg_hard", "segnet_hard")}
+    assert set(row.values()) == {8}
+    assert seen["hff6dof_noseg_hard"] + seen.get("segnet_hard", 0) == 8
+    assert "8 images seen" in md and "1 seed(s) per row" in md
     # a finished training keeps its weights, not the optimiser's state; train refuses to go on with it
     from tdof20.methods.train import train
 
-    ck = torch.load(out / "runs" / "hff6dof_simple" / "last.pt", map_location="cpu", weights_only=True)
-    assert "model" in ck and "optimizer" not in ck and ck["step"] >= 1
+    ck = torch.load(out / "runs" / "hff6dof_simple_s0" / "last.pt", map_location="cpu", weights_only=True)
+    assert "model" in ck and "optimizer" not in ck and ck["step"] == 2
     with pytest.raises(TdofError, match="holds the weights only") as e:
-        train(out / "dataset", "simple", out / "runs" / "hff6dof_simple", image_size=(32, 32), epochs=5,
+        train(out / "dataset", "simple", out / "runs" / "hff6dof_simple_s0", image_size=(32, 32), epochs=5,
               progress=False)
     assert "last.pt" in str(e.value)
 
 
-def test_resume_after_a_kill_reuses_finished_work(done):
+def test_resume_after_a_kill_reuses_finished_work(killed):
+    done = killed
     first, calls = done["first"], done["calls"]
     trained_first = [k for k in first if k.startswith("train/")]
-    assert first["dataset"] and trained_first == ["train/pvnet_simple"]
+    assert first["dataset"] and trained_first == ["train/pvnet_simple_s0"]
     # PVNet on simple trained epoch by epoch; on hard epoch 1 was trained and validated, the kill came
     # in epoch 2; the resumed run did not train epoch 1 again (its figure was kept) but epoch 2
-    assert calls[:5] == [("pvnet_simple", 1), ("pvnet_simple", 2), ("pvnet_hard", 1), ("pvnet_hard", 2),
-                         ("pvnet_hard", 2)]
-    assert all(calls.count((n, e)) == 1 for n, e in calls if n != "pvnet_hard")
-    assert [f["step"] for f in done["first_val"]["pvnet_hard"]] == [1]
-    val_predictions = [e for e in done["log"] if e[:3] == ("predict", "val", "pvnet_hard")]
+    assert calls[:5] == [("pvnet_simple_s0", 1), ("pvnet_simple_s0", 2), ("pvnet_hard_s0", 1),
+                         ("pvnet_hard_s0", 2), ("pvnet_hard_s0", 2)]
+    assert all(calls.count((n, e)) == 1 for n, e in calls if n != "pvnet_hard_s0")
+    assert [f["step"] for f in done["first_val"]["pvnet_hard_s0"]] == [1]
+    val_predictions = [e for e in done["log"] if e[:3] == ("predict", "val", "pvnet_hard_s0")]
     assert len(val_predictions) == len({(e[3], json.dumps(e[4], sort_keys=True)) for e in val_predictions})
     state = read_json(done["out"] / "reproduce.json")
     for k, v in first.items():
         assert state["jobs"][k] == v  # finished jobs kept as they were
     # a third call does no work at all
-    again = reproduce(done["out"], config=TEST, progress=False)
+    again = reproduce(done["out"], config=PVNET, progress=False)
     assert read_json(done["out"] / "reproduce.json")["jobs"] == state["jobs"] and again.exists()
 
 
-def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done):
-    out, log = done["out"], done["log"]
+def test_every_training_gets_the_same_schedule_from_the_budget(done, killed):
+    """The schedule each training call got: 2 steps of 4 images (8 seen), 1 epoch, seed 0; PVNet
+    alone with 16 images: 2 steps of 8, 2 epochs."""
+    scheds = {e[1]: e[2] for e in done["log"] if e[0] == "train" and not e[1].startswith("segnet")}
+    assert len(scheds) == 12
+    assert all((v["batch"], v["steps"], v["images_seen"], v["epochs"], v["seed"]) == (4, 2, 8, 1, 0)
+               for k, v in scheds.items() if "noseg" not in k)
+    scheds = {e[1]: e[2] for e in killed["log"] if e[0] == "train"}
+    assert set(scheds) == {"pvnet_simple_s0", "pvnet_hard_s0"}
+    assert all(v["steps"] == 2 and v["epochs"] == 2 and v["images_seen"] == 16 for v in scheds.values())
+
+
+def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done, killed):
+    out, log = killed["out"], killed["log"]
     state = read_json(out / "reproduce.json")
     jobs = state["jobs"]
     # the kept epoch is the validation-best one: epoch 2 on simple (the last), epoch 1 on hard
-    for name, best, last in (("pvnet_simple", 2, 2), ("pvnet_hard", 1, 2)):
+    for name, best, last in (("pvnet_simple_s0", 2, 2), ("pvnet_hard_s0", 1, 2)):
         j = jobs[f"train/{name}"]
         figs = {f["epoch"]: f["add_s"] for f in j["validation"]}
         assert sorted(figs) == [1, 2] and figs[1] != figs[2]
@@ -172,20 +221,24 @@ def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done):
         info = read_json(out / "results" / f"{name}_info.json")
         assert info["run"] == str(kept.resolve()) and info["part"] == "test"
     # PVNet's candidate inlier_cos chosen on validation and used for the test part
-    for name, cos in (("pvnet_simple", 0.9), ("pvnet_hard", 0.99)):
+    for name, cos in (("pvnet_simple_s0", 0.9), ("pvnet_hard_s0", 0.99)):
         assert jobs[f"choose/{name}"]["options"] == {"inlier_cos": cos}
         assert [f["options"]["inlier_cos"] for f in jobs[f"choose/{name}"]["validation"]] == [0.99, 0.9]
         assert read_json(out / "results" / f"{name}_info.json")["method_config"]["inlier_cos"] == cos
-    # HFF6DoF's two rows: bearing + PnP on simple, 3D voting + LSQ on hard; the claims use the choice
-    assert jobs["choose/formulation/simple"]["primary"] == "hff6dof_simple"
-    assert jobs["choose/formulation/hard"]["primary"] == "hff6dof-3d_hard"
+    md = killed["md"].read_text()
+    assert "**Chosen on validation**" in md and "| pvnet_hard_s0 | epoch | epoch 1 of 2 (step 1) |" in md
+    assert "| pvnet_simple_s0 | options | inlier_cos 0.9 |" in md
     t = json.loads((out / "tables" / "tables.json").read_text())
+    assert {r["result"] for r in t["choices"]} >= {"pvnet_simple_s0", "pvnet_hard_s0"}
+    # every compared row chose among two candidate sets; HFF6DoF's two pose recoveries are two rows,
+    # none chosen between: the claims take the default one (bearing + PnP)
+    jobs = read_json(done["out"] / "reproduce.json")["jobs"]
+    chooses = [k for k in jobs if k.startswith("choose/")]
+    assert len(chooses) == 10 and all(len(jobs[k]["validation"]) == 2 for k in chooses)
+    assert not any("formulation" in k for k in jobs)
+    t = json.loads((done["out"] / "tables" / "tables.json").read_text())
     claim = [c for c in t["agreement"] if c["id"] == "hff6dof_hard_add_s"][0]
-    assert "3D voting + LSQ" in claim["ours"]
-    md = done["md"].read_text()
-    assert "**Chosen on validation**" in md and "| pvnet_hard | epoch | epoch 1 of 2 (step 1) |" in md
-    assert "| pvnet_simple | options | inlier_cos 0.9 |" in md
-    assert {r["result"] for r in t["choices"]} >= {"pvnet_simple", "pvnet_hard", "HFF6DoF · simple", "HFF6DoF · hard"}
+    assert "bearing + PnP" in claim["ours"]
     # the test part is predicted and scored only by the predict/score jobs, after every choice; every
     # call inside a training or a choice is on the validation part
     done_at = {e[1]: i for i, e in enumerate(log) if e[0] == "done"}
@@ -200,37 +253,66 @@ def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done):
     assert any(e[:2] == ("score", "val") for e in log) and any(e[:2] == ("score", "test") for e in log)
 
 
-def test_changed_config_is_refused(done):
-    other = json.loads(json.dumps(TEST))
-    other["epochs"]["pvnet"] = 3
-    other["train"]["batch_size"] = 2
-    other["candidates"]["pvnet"]["inlier_cos"] = [0.99]
+def test_changed_config_is_refused(killed):
+    done = killed
+    other = json.loads(json.dumps(PVNET))
+    other["train"]["images"] = 24
+    other["train"]["batch_size"] = 4
+    other["candidates"]["pvnet"]["inlier_cos"] = [0.99, 0.8]
     before = (done["out"] / "reproduce.json").read_bytes()
     with pytest.raises(TdofError, match=r"another config \(changed: candidates.pvnet.inlier_cos \[0.99, 0.9\] -> "
-                                        r"\[0.99\]; epochs.pvnet 2 -> 3; train.batch_size 8 -> 2"):
+                                        r"\[0.99, 0.8\]; train.batch_size 8 -> 4; train.images 16 -> 24"):
         reproduce(done["out"], config=other, progress=False)
-    other = json.loads(json.dumps(TEST))
+    other = json.loads(json.dumps(PVNET))
     other["select"] = {"epochs": "last"}
     with pytest.raises(TdofError, match=r"changed: select.epochs 'best' -> 'last'"):
         reproduce(done["out"], config=other, progress=False)
     with pytest.raises(TdofError, match="preset"):
-        reproduce(done["out"], preset="cpu", config=TEST, progress=False)
+        reproduce(done["out"], preset="cpu", config=PVNET, progress=False)
     assert (done["out"] / "reproduce.json").read_bytes() == before
-    other = json.loads(json.dumps(TEST))
+    other = json.loads(json.dumps(PVNET))
     other["device"] = "auto"  # the device changes no result: accepted (nothing left to do)
     reproduce(done["out"], config=other, progress=False)
 
 
-def test_oracle_mask_result_is_marked(done):
+def test_segmentation_ablation_masks(done):
+    """Without the head, the row takes the masks of the separately trained segmentation network
+    (its training counted in the row's budget); where this version has none, ground-truth masks,
+    and the row is marked oracle and stays outside every claim."""
     out = done["out"]
-    s = read_json(out / "scores" / "hff6dof_noseg_hard.json")
-    assert s["oracle_masks"] is True and read_json(out / "scores" / "hff6dof_hard.json")["oracle_masks"] is False
-    assert read_json(out / "results" / "hff6dof_noseg_hard_info.json")["masks"] == "gt"
+    s = read_json(out / "scores" / "hff6dof_noseg_hard_s0.json")
+    assert read_json(out / "scores" / "hff6dof_hard_s0.json")["oracle_masks"] is False
     md = done["md"].read_text()
-    assert "without segmentation head (oracle masks)" in md
     t = json.loads((out / "tables" / "tables.json").read_text())
-    assert t["ablation_segmentation"]["rows"][1]["oracle_masks"] is True
-    assert "oracle masks" in [c for c in t["agreement"] if c["id"] == "seg_gain_add_s"][0]["ours"]
+    claim = [c for c in t["agreement"] if c["id"] == "seg_gain_add_s"][0]
+    if R.segnet_available():
+        assert s["oracle_masks"] is False and s["budget"]["segnet_images_seen"] + s["budget"]["images_seen"] == 8
+        assert read_json(out / "results" / "hff6dof_noseg_hard_s0_info.json")["masks"] == "segnet"
+        assert "separately trained segmentation network" in md
+    else:
+        assert s["oracle_masks"] is True
+        assert read_json(out / "results" / "hff6dof_noseg_hard_s0_info.json")["masks"] == "gt"
+        assert "without segmentation head (oracle masks)" in md
+        assert t["ablation_segmentation"]["rows"][1]["oracle_masks"] is True
+        assert claim["agrees"] is None and "oracle" in claim["ours"]
+
+
+@pytest.mark.parametrize("toml,needle", [
+    ('[method_options.hff6dof]\nmasks = "gt"\n',
+     r"method_options.hff6dof.masks: the compared row 'HFF6DoF \(bearing \+ PnP\)' would predict with "
+     r"ground-truth masks, a privileged input: refused"),
+    ('[method_options.densefusion]\ndepth_mode = "restored"\n',
+     r"method_options.densefusion.depth_mode: the compared row 'DenseFusion' would predict with restored depth"),
+    ('[candidates.pvnet]\ninlier_cos = [0.99, 0.97]\n',
+     r"different numbers of candidate sets chosen on validation \(PVNet 2, DenseFusion 1, FFB6D 1, "),
+    ('[train]\nimages = 10\n[batch]\npvnet = 4\n', r"train.images \(10\) must be a multiple of every method's batch"),
+])
+def test_unfair_configs_are_refused_in_one_line(tmp_path, toml, needle):
+    cfg = tmp_path / "x.toml"
+    cfg.write_text('preset = "smoke"\n' + toml)
+    with pytest.raises(TdofError, match=needle) as e:
+        make_config(None, cfg)
+    assert str(cfg) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_config_errors_and_presets(tmp_path):
@@ -266,11 +348,15 @@ def test_config_errors_and_presets(tmp_path):
     with pytest.raises(TdofError, match=r"method_options.ffb6d: unknown option 'n_pts'"):
         make_config(None, bad)
     ok = tmp_path / "ok.toml"
-    ok.write_text('preset = "cpu"\nmethods = ["hff6dof"]\n[epochs]\nhff6dof = 3\n')
+    ok.write_text('preset = "cpu"\nmethods = ["hff6dof"]\n[train]\nimages = 96\n[batch]\nhff6dof = 8\n')
     c = make_config(None, ok)
-    assert c.preset == "cpu" and c.methods == ("hff6dof",) and c.epochs.hff6dof == 3 and c.data.steps == 12
-    assert c.candidates["hff6dof"]["depth_mode"] == ["filled", "raw"] and c.select.every == 2
+    assert c.preset == "cpu" and c.methods == ("hff6dof",) and c.train.images == 96 and c.batch_of("hff6dof") == 8
+    assert c.data.steps == 12 and c.train.seeds == (0, 1)
+    assert c.candidates["hff6dof"]["depth_mode"] == ["filled", "raw"] and c.select.every == 1
     assert make_config("smoke").candidates == {} and make_config("smoke").select.epochs == "best"
+    bad.write_text('[train]\nseeds = [0, 0]\n')
+    with pytest.raises(TdofError, match="train.seeds names a seed twice"):
+        make_config(None, bad)
 
 
 @pytest.mark.parametrize("toml,needle", [

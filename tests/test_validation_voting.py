@@ -1,6 +1,10 @@
 """The validation part (rules, reader, train on train-minus-val, predict and score on val) and the
 paper's 3D voting from observed-origin vector targets.
 
+simple validates on held-out arcs of its scenes; hard on whole held-out training scenes of each kind
+(one in 7, the highest ids), arcs only for a kind with too few training scenes to spare one (as the
+fixture's, one of each kind).
+
 One tiny simulated dataset: single/12 (4 arm positions x 8 turntable steps: 1 test and 1
 validation step per arm position) and multi/01 (a hard training scene, 1 arm position x 7 steps),
 at 80x60, with the simulator's transparent-depth sensor model (holes and depth seen through the
@@ -14,7 +18,9 @@ import pytest
 import torch
 
 from tdof20.dataset.build import build_dataset, split_images
-from tdof20.dataset.splits import part_of, simple_test_steps, val_steps, validation_images
+from tdof20.dataset.naming import scene_number
+from tdof20.dataset.splits import (HARD_VAL_EVERY, PAPER_HARD, RELEASE_SCENES, hard_val_scenes, part_of,
+                                   simple_test_steps, val_steps, validation_images)
 from tdof20.dataset.validation import part_images, split_with_val, val_targets, write_val_targets
 from tdof20.capture import run_capture, sim_config
 from tdof20.errors import TdofError
@@ -68,6 +74,55 @@ def test_paper_sized_validation_has_the_test_parts_size():
     assert kinds.count("val") == kinds.count("test") == 240
     train, val = validation_images([x for x, k in zip(images, kinds) if k != "test"], "simple", steps, arms)
     assert len(val) == 240 and {x for x, k in zip(images, kinds) if k == "val"} == set(val)
+
+
+def test_hard_validation_is_whole_held_out_training_scenes_of_both_kinds():
+    held, arcs = hard_val_scenes()
+    assert held == {19, 20, scene_number("multi/18"), scene_number("multi/19")} and not arcs
+    assert all(part_of("hard", s, 0, 1, 1) == "train" for s in held)  # training scenes, never test ones
+    steps, arms = 12, 4  # the cpu preset's scenes
+    images = [(s, im) for s in RELEASE_SCENES for im in range(steps * arms)
+              if part_of("hard", s, im, steps, arms) == "train"]
+    kinds = {x: part_of("hard", *x, steps, arms, with_val=True) for x in images}
+    val = {x for x, k in kinds.items() if k == "val"}
+    assert val == {x for x in images if x[0] in held}  # every image of the held-out scenes, none of the others
+    assert (len(images), len(val)) == (34 * 48, 4 * 48)
+    assert validation_images(images, "hard", steps, arms)[1] == sorted(val)
+    assert validation_images(images, "hard", steps, arms, fraction=0.3)[1] == sorted(val)  # arcs' fraction: no say
+    # the release: 4 of the 34 training scenes, about 11.7 % of its 52,747 training images (the arcs: 15 %)
+    share = (2 * 31108 / 20 + 2 * 30778 / 20) / PAPER_HARD[0]
+    assert 0.11 < share < 0.12 and round(400 * 4674 / 31108) / 400 == 0.15
+
+
+def test_hard_validation_keeps_arcs_for_a_kind_too_few_to_spare_a_scene():
+    steps, arms = 8, 4
+    singles = list(range(1, HARD_VAL_EVERY + 1))          # 7 single-object scenes: the last one held out
+    scenes = singles + [scene_number("multi/01")]         # one multi-object scene: its arcs
+    assert hard_val_scenes(scenes) == ({HARD_VAL_EVERY}, {"multi"})
+    images = [(s, im) for s in scenes for im in range(steps * arms)]
+    train, val = validation_images(images, "hard", steps, arms)
+    assert {x for x in val if x[0] < 21} == {x for x in images if x[0] == HARD_VAL_EVERY}
+    multi_val = sorted(im for s, im in val if s == 22)
+    assert multi_val == sorted(im for im in range(steps * arms) if im % steps in val_steps(im // steps, steps, arms))
+    assert [part_of("hard", s, im, steps, arms, with_val=True, scenes=scenes) for s, im in images] == [
+        "val" if x in set(val) else "train" for x in images]
+    # six single-object scenes cannot spare one: arcs in each (the rule before)
+    assert hard_val_scenes(singles[:-1]) == (frozenset(), {"single"})
+    assert part_of("hard", 3, steps // 2, steps, arms, with_val=True, scenes=singles[:-1]) == "val"
+
+
+def test_held_out_objects_stay_in_training_in_the_simulated_scenes():
+    """As the test scenes' objects are: the held-out single-object scenes' objects appear in kept
+    multi-object training scenes, and every object of the held-out multi-object scenes keeps its
+    single-object scene."""
+    from tdof20.sim.scenes import get_scene, scene_name
+
+    held, _ = hard_val_scenes()
+    kept = [s for s in RELEASE_SCENES if part_of("hard", s, 0, 1, 1) == "train" and s not in held]
+    seen = {o for s in kept for o in get_scene(scene_name(s)).obj_ids}
+    assert all(o in seen for s in held for o in get_scene(scene_name(s)).obj_ids)
+    multi_seen = {o for s in kept if s > 20 for o in get_scene(scene_name(s)).obj_ids}
+    assert {s for s in held if s <= 20} <= multi_seen
 
 
 def test_dataset_validation_part_disjoint_deterministic_and_in_every_training_scene(dataset):

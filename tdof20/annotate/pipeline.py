@@ -53,7 +53,11 @@ the ones after). The label stage resumes inside itself too (frames already writt
 ``stages=[...]`` runs only those stages (skipped when up to date, unless ``force``); a stage whose
 inputs are missing stops with one line saying which stage to run first. Every run writes
 ``work/summary.json``: per-stage status and timing, flagged and skipped frames with their reasons,
-the objects' fit scores, the evaluation.
+the objects' fit scores, the evaluation, and ``unresolved_flags`` (frames left unlabelled that
+the reviewer did not reject, objects that failed: what ``dataset build`` refuses unless told).
+A reviewer's corrections (``work/corrections.jsonl``, written by ``tdof20 annotate review``) are
+honoured by the place and label stages (:mod:`tdof20.annotate.corrections`). ``work/config.json``
+holds the options of the last run.
 
 Options (:class:`~tdof20.annotate.config.AnnotateConfig`) come from a TOML file
 (:func:`~tdof20.annotate.config.load_annotate_config`) with one table per stage — ``[register]``
@@ -79,6 +83,7 @@ from typing import Any, Iterable
 # (``from tdof20.annotate.pipeline import AnnotateConfig, load_annotate_config``) keeps working
 from tdof20.annotate.config import (AnnotateConfig, PlaceConfig, QAConfig, annotate_config_from_dict,
                                     load_annotate_config)
+from tdof20.annotate.corrections import JOURNAL, REJECTED
 from tdof20.annotate.executors import executor_scope
 from tdof20.annotate.registration import RegistrationResult
 from tdof20.annotate.stages import STAGE_RECORDS, STAGES, MissingInput, StageContext, parse_stages
@@ -136,6 +141,21 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
     report = ctx.out / "qa" / "report.html"
     if report.exists():
         s["report"] = str(report)
+    # what a person still has to look at (``dataset build`` refuses the scene while any is left,
+    # unless told): frames left unlabelled but not rejected by the reviewer, and failed objects
+    unresolved = [{"arm": sk["arm"], "step": sk["step"], "im_id": sk.get("im_id"), "reason": sk["reason"]}
+                  for sk in (s.get("label") or {}).get("skipped") or [] if not sk["reason"].startswith(REJECTED)]
+    unresolved += [{"obj_id": f["obj_id"], "reason": f["reason"]} for f in s.get("failed_objects") or []]
+    s["unresolved_flags"] = unresolved
+    try:
+        corr = ctx.corrections()
+        if corr.entries:
+            s["review"] = {"journal": str(ctx.work / JOURNAL), "entries": len(corr.entries),
+                           "corrected_objects": sorted(corr.placed),
+                           "arm_verdicts": {str(a): v for a, v in sorted(corr.arm_verdicts.items())},
+                           "frame_verdicts": [[a, k, v] for (a, k), v in sorted(corr.frame_verdicts.items())]}
+    except TdofError as e:
+        s["problems"].append(str(e))
     return s
 
 
@@ -215,6 +235,8 @@ def annotate(raw_dir: str | Path, out_dir: str | Path, models_dir: str | Path | 
             state = StateFile(ctx.work, raw.resolve())
         state.data["session"] = identity
         state.data["raw_recorded"] = str(raw.resolve())
+        # the options of this run, for tools that rerun stages later (the review's "relabel")
+        write_json(ctx.work / "config.json", cfg.to_dict())
         removed = remove_stale_temp_files(out)
         if removed:
             warnings.append(f"removed {removed} temporary file(s) left by an interrupted run")

@@ -41,7 +41,7 @@ from tdof20.formats.bop_models import read_models_info, write_models_info
 from tdof20.geometry import rotation_matrix
 
 __all__ = ["T_arr", "T_list", "copy_file", "copy_models", "load_meshes", "match_models", "model_samples",
-           "place_models", "upright"]
+           "place_models", "pose_figures", "refine_placement", "upright"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,42 +199,70 @@ def place_models(objects: list[dict], meshes: dict, clusters: list[np.ndarray], 
 
     With a ``failed`` list, an object that fails the gate is appended to it ({obj_id, cluster,
     reason}: the one line the error would say) and left out, so the others are labelled (a
-    "partial" scene); only when every object fails is the first one's TdofError raised."""
+    "partial" scene); only when every object fails is the first one's TdofError raised. Each
+    placement and failure carries the object's ``index`` (its place in fits.json / session.json),
+    which the reviewer's corrections (:mod:`tdof20.annotate.corrections`) refer to."""
     pc = cfg.place
     samples = model_samples(meshes, pc.fit_samples)
     placements: list[dict] = []
     for e in objects:
         o, j = int(e["obj_id"]), int(e["cluster"])
-        V = meshes[o][0]
-        f = fit_model(samples[o], clusters[j], cfg.fit, init=T_arr(e["T_ref_model"]))
-        T, tilt = f.T_ref_model, None
-        note = ""
-        if pc.upright:
-            Tu, tilt = upright(f.T_ref_model, up, 0.5 * (V.min(0) + V.max(0)))
-            if tilt <= pc.upright_max_deg:
-                T = Tu
-            else:
-                note = f"tilted {tilt:.1f} deg from the table normal (> place.upright_max_deg): kept as fitted"
-        bad = []
-        if f.fitness < pc.min_fitness:
-            bad.append(f"fitness {f.fitness:.2f} < {pc.min_fitness}")
-        if f.score > pc.max_score_mm:
-            bad.append(f"mean distance {f.score:.2f} mm > {pc.max_score_mm}")
-        if bad:
-            err = TdofError(f"object {o} fits its cluster badly ({', '.join(bad)}; work/reconstruction/"
+        r = refine_placement(samples[o], meshes[o][0], clusters[j], T_arr(e["T_ref_model"]), up, cfg)
+        if r["bad"]:
+            err = TdofError(f"object {o} fits its cluster badly ({', '.join(r['bad'])}; work/reconstruction/"
                             f"{cluster_files[j]}): the wrong model, a model in other units, or a "
                             f"bad reconstruction; no labels are written from it", where)
             if failed is None:
                 raise err
-            failed.append({"obj_id": o, "cluster": j, "reason": str(err)})
+            failed.append({"index": int(e["index"]), "obj_id": o, "cluster": j, "reason": str(err)})
             continue
-        placements.append({"gt_id": len(placements), "obj_id": o, "cluster": j, "T_ref_model": T_list(T),
-                           "fitness": float(f.fitness), "rmse_mm": float(f.rmse), "score_mm": float(f.score),
-                           "upright_correction_deg": None if tilt is None or note else round(float(tilt), 4),
-                           "source": "models", "note": note})
+        placements.append({"gt_id": len(placements), "index": int(e["index"]), "obj_id": o, "cluster": j,
+                           "T_ref_model": T_list(r["T_ref_model"]), "fitness": r["fitness"], "rmse_mm": r["rmse_mm"],
+                           "score_mm": r["score_mm"], "upright_correction_deg": r["upright_correction_deg"],
+                           "source": "models", "note": r["note"]})
     if failed and not placements:
         raise TdofError(failed[0]["reason"])
     return placements
+
+
+def refine_placement(samples: np.ndarray, vertices: np.ndarray, points: np.ndarray, T_init: np.ndarray,
+                     up: np.ndarray, cfg: AnnotateConfig) -> dict:
+    """The place stage's fit of one object: ICP of the model samples into ``points`` (its cluster)
+    from ``T_init`` (``cfg.fit.icp_mm``), set upright on the table (normal ``up``) when tilted
+    less than ``place.upright_max_deg``, judged by the quality gate. Also the review's "snap"
+    (from where the reviewer put the model). Returns {T_ref_model, fitness, rmse_mm, score_mm,
+    upright_correction_deg, note, bad (the gate's failed tests, [] when it passes)}."""
+    pc = cfg.place
+    f = fit_model(samples, points, cfg.fit, init=T_init)
+    T, tilt, note = f.T_ref_model, None, ""
+    if pc.upright:
+        Tu, tilt = upright(f.T_ref_model, up, 0.5 * (vertices.min(0) + vertices.max(0)))
+        if tilt <= pc.upright_max_deg:
+            T = Tu
+        else:
+            note = f"tilted {tilt:.1f} deg from the table normal (> place.upright_max_deg): kept as fitted"
+    bad = []
+    if f.fitness < pc.min_fitness:
+        bad.append(f"fitness {f.fitness:.2f} < {pc.min_fitness}")
+    if f.score > pc.max_score_mm:
+        bad.append(f"mean distance {f.score:.2f} mm > {pc.max_score_mm}")
+    return {"T_ref_model": T, "fitness": float(f.fitness), "rmse_mm": float(f.rmse), "score_mm": float(f.score),
+            "upright_correction_deg": None if tilt is None or note else round(float(tilt), 4), "note": note,
+            "bad": bad}
+
+
+def pose_figures(samples: np.ndarray, points: np.ndarray, T: np.ndarray, inlier_mm: float) -> tuple[float, float, float]:
+    """(fitness, inlier RMSE mm, truncated mean distance mm) of the posed model samples against
+    ``points`` (a cluster), as :func:`~tdof20.annotate.models.fit_model` reports them: the share
+    of points within ``inlier_mm`` of the model, their RMSE, and the mean distance capped at 5 mm."""
+    from scipy.spatial import cKDTree
+
+    if not len(points):
+        return 0.0, 0.0, 5.0
+    d, _ = cKDTree(samples @ T[:3, :3].T + T[:3, 3]).query(points, workers=-1)
+    inl = d <= inlier_mm
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else 0.0
+    return float(inl.mean()), rmse, float(np.minimum(d, 5.0).mean())
 
 
 def copy_file(src: Path, dst: Path) -> None:

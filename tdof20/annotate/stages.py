@@ -12,8 +12,10 @@ call the stage's room and write its results:
   (frames, crop, files) -> ``work/reconstruction/``;
 * model — :func:`~tdof20.annotate.place.match_models` (with ``--models``) or
   :func:`~tdof20.annotate.modelbuild.build_model_from_cluster` -> ``work/fits.json`` (+ ``work/models/``);
-* place — :func:`~tdof20.annotate.place.place_models` -> ``work/placements.json``, ``models/``;
-* label — :func:`~tdof20.annotate.label.label_scene` -> the BOP scene, ``work/label.json``;
+* place — :func:`~tdof20.annotate.place.place_models` -> ``work/placements.json``, ``models/``; the
+  reviewer's corrected poses (``work/corrections.jsonl``, :mod:`~tdof20.annotate.corrections`) put in;
+* label — :func:`~tdof20.annotate.label.label_scene` -> the BOP scene, ``work/label.json``; the
+  reviewer's rejected frames skipped, accepted ones labelled although registration flagged them;
 * qa — :func:`~tdof20.annotate.qa.write_qa` and :func:`~tdof20.annotate.evaluate.evaluate_scene`
   -> ``qa/``, ``work/evaluation.json``.
 
@@ -35,12 +37,14 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from tdof20.annotate.config import AnnotateConfig
+from tdof20.annotate.corrections import Corrections, read_journal, replay
 from tdof20.annotate.evaluate import evaluate_scene
 from tdof20.annotate.fusion import (crop_depth, fuse_selection, load_reconstruction, read_ply_points,
                                     write_reconstruction)
 from tdof20.annotate.label import label_scene
 from tdof20.annotate.modelbuild import build_model_from_cluster, write_models
-from tdof20.annotate.place import T_arr, T_list, copy_file, copy_models, load_meshes, match_models, place_models
+from tdof20.annotate.place import (T_arr, T_list, copy_file, copy_models, load_meshes, match_models, model_samples,
+                                   place_models, pose_figures)
 from tdof20.annotate.qa import write_qa
 from tdof20.annotate.reconstruct import reconstruct
 from tdof20.annotate.registration import RegistrationResult, register_session
@@ -125,6 +129,11 @@ class StageContext:
     @property
     def eval_file(self) -> Path:
         return self.work / "evaluation.json"
+
+    def corrections(self) -> Corrections:
+        """The reviewer's corrections (``work/corrections.jsonl``, :mod:`tdof20.annotate.corrections`)
+        folded: the place stage puts in the corrected poses, the label stage the frame verdicts."""
+        return replay(read_journal(self.work))
 
     def raw_fingerprint(self) -> str:
         files = [self.raw / "session.json", self.raw / "journal.jsonl"]
@@ -357,20 +366,28 @@ def _place(ctx: StageContext) -> dict:
     up = plane[:3] / np.linalg.norm(plane[:3])
     dst = ctx.out / "models"
     failed: list[dict] = []   # objects the quality gate refused: the others are labelled ("partial")
+    corr = ctx.corrections()  # the reviewer's poses (work/corrections.jsonl)
     if fits["source"] == "models":
         md = ctx.models_dir if ctx.models_dir is not None else (Path(fits["models_dir"]) if fits.get("models_dir") else None)
         if md is None or not Path(md).is_dir():
             raise TdofError("the model stage used a models folder that is not there now: pass --models", ctx.fits_file)
         md = Path(md)
         obj_ids = sorted({int(e["obj_id"]) for e in fits["objects"]})
-        placements = place_models(fits["objects"], load_meshes(md, obj_ids), clusters,
-                                  [c["file"] for c in meta["clusters"]], up, ctx.cfg, ctx.fits_file, failed)
+        meshes = load_meshes(md, obj_ids)
+        try:
+            placements = place_models(fits["objects"], meshes, clusters, [c["file"] for c in meta["clusters"]], up,
+                                      ctx.cfg, ctx.fits_file, failed)
+        except TdofError:
+            if not (failed and corr.placed):   # every object failed, and the reviewer placed none
+                raise
+            placements = []
         # the scene's models folder: the user's files of these objects, byte for byte
         copy_models(md, dst, obj_ids)
     else:
         placements = []
         for e in fits["objects"]:
-            placements.append({"gt_id": len(placements), "obj_id": int(e["obj_id"]), "cluster": int(e["cluster"]),
+            placements.append({"gt_id": len(placements), "index": int(e["index"]), "obj_id": int(e["obj_id"]),
+                               "cluster": int(e["cluster"]),
                                "T_ref_model": e["T_ref_model"], "fitness": None, "rmse_mm": None, "score_mm": None,
                                "upright_correction_deg": None, "source": "built",
                                "watertight": e.get("watertight"), "note": ""})
@@ -379,6 +396,14 @@ def _place(ctx: StageContext) -> dict:
         for p in sorted(ctx.built_dir.iterdir()):
             if p.is_file():
                 copy_file(p, dst / p.name)
+    if corr.placed:   # the reviewer's poses replace the fits (the label gate still judges every frame)
+        samples = model_samples(load_meshes(dst, sorted({int(e["obj_id"]) for e in fits["objects"]})),
+                                ctx.cfg.place.fit_samples)
+        placements, failed[:] = corr.apply(
+            placements, failed, fits["objects"],
+            lambda o, j, T: pose_figures(samples[o], clusters[j], T, ctx.cfg.fit.icp_mm[-1]))
+        if not placements:
+            raise TdofError(failed[0]["reason"])
     write_json(ctx.placements_file, {"format": "tdof20-placements", "plane": meta["plane"],
                                      "placements": placements, "failed": failed})
     return {"objects": len(placements), **({"failed_objects": len(failed)} if failed else {})}
@@ -391,7 +416,7 @@ def _place_inputs(ctx: StageContext) -> dict:
         rec = read_json(ctx.fits_file).get("models_dir")
         md = Path(rec) if rec else None
     return {"cfg": [dataclasses.asdict(c.fit), dataclasses.asdict(c.place)],
-            "models_dir": None if md is None else dir_hash(md)}
+            "models_dir": None if md is None else dir_hash(md), "corrections": ctx.corrections().placement_key()}
 
 
 def _place_outputs(ctx: StageContext) -> dict:
@@ -425,7 +450,8 @@ def _label(ctx: StageContext) -> dict:
         "objects": [{"gt_id": p["gt_id"], "obj_id": p["obj_id"], "source": p["source"]} for p in pl]})
     T_ref_frames = {(f.arm, f.step): f.T_ref_frame for f in reg.frames}
     summary = label_scene(ctx.raw, ctx.out, T_ref_frames, [(int(p["obj_id"]), T_arr(p["T_ref_model"])) for p in pl],
-                          models, ctx.cfg.label, skip=reg.flagged_frames(), progress=ctx.progress, reuse=reuse)
+                          models, ctx.cfg.label, skip=ctx.corrections().skip(reg.flagged_frames(), info.n_arms, info.steps),
+                          progress=ctx.progress, reuse=reuse)
     write_json(ctx.label_file, summary)
     if summary["labelled"] + summary["already_done"] == 0:
         first = "; ".join(sorted({s["reason"] for s in summary["skipped"]})[:3])
@@ -445,7 +471,7 @@ def _label_outputs(ctx: StageContext) -> dict:
 LABEL = Stage(
     "label", needs=("register", "place"), run=_label,
     inputs=lambda ctx: {"cfg": {k: v for k, v in dataclasses.asdict(ctx.cfg.label).items()
-                                if k not in _LABEL_RUNTIME}},
+                                if k not in _LABEL_RUNTIME}, "verdicts": ctx.corrections().verdict_key()},
     outputs=_label_outputs)
 
 

@@ -200,17 +200,57 @@ def write_tdof20_layout(scene_dirs: list[str | Path], out: str | Path, *, split:
 WRITERS = {Tdof20Reader.layout: write_tdof20_layout, BopReader.layout: write_bop_layout}
 
 
+_REJECTED = "rejected by the reviewer"   # the skip reason of a frame the reviewer rejected (annotate's journal)
+
+
+def unresolved_flags(scene_dir: str | Path) -> list[dict]:
+    """What ``tdof20 annotate`` left for a person in the scene folder (``work/summary.json``'s
+    ``unresolved_flags``: frames not labelled that the reviewer did not reject, objects that
+    failed). A scene without an annotate summary (simulator truth, an import) has none."""
+    path = Path(scene_dir) / "work" / "summary.json"
+    if not path.exists():
+        return []
+    s = read_json(path)
+    if not isinstance(s, dict):
+        raise TdofError("not an annotate summary (a JSON object)", path)
+    if isinstance(s.get("unresolved_flags"), list):
+        return s["unresolved_flags"]
+    # a summary written before the review tool: its skipped frames and failed objects
+    skipped = (s.get("label") or {}).get("skipped") or []
+    return ([{"arm": k.get("arm"), "step": k.get("step"), "reason": str(k.get("reason", ""))} for k in skipped
+             if not str(k.get("reason", "")).startswith(_REJECTED)]
+            + [{"obj_id": f.get("obj_id"), "reason": f.get("reason")} for f in s.get("failed_objects") or []])
+
+
+def check_flags(scenes: list[str | Path]) -> None:
+    """Refuse (one line) the first scene with unresolved flags (:func:`unresolved_flags`)."""
+    for d in scenes:
+        flags = unresolved_flags(d)
+        if flags:
+            f = flags[0]
+            what = f"object {f['obj_id']}" if "obj_id" in f else f"arm {f.get('arm')} step {f.get('step')}"
+            reason = str(f.get("reason", ""))
+            raise TdofError(f"{len(flags)} unresolved flag(s), e.g. {what}: {reason[:160]}; review the scene "
+                            f"(tdof20 annotate review {d}: correct, accept or reject, relabel) or give "
+                            f"--allow-flagged to build with its frames as they are", Path(d) / "work" / "summary.json")
+
+
 def build_dataset_in_layout(layout: str, scenes: list[str | Path], out: str | Path, *, split: str | None = None,
-                            add: bool = False, show_progress: bool = True) -> dict:
-    """``tdof20 dataset build SCENES... --out OUT [--layout L] [--split S] [--add]``: write the
-    annotated ``scenes`` as a dataset in ``layout`` (a name of :data:`WRITERS`) and return its
-    :func:`stats`. One-line errors for an unknown layout and for options the layout does not take."""
+                            add: bool = False, show_progress: bool = True, allow_flagged: bool = False) -> dict:
+    """``tdof20 dataset build SCENES... --out OUT [--layout L] [--split S] [--add] [--allow-flagged]``:
+    write the annotated ``scenes`` as a dataset in ``layout`` (a name of :data:`WRITERS`) and
+    return its :func:`stats`. One-line errors for an unknown layout and for options the layout
+    does not take; a scene with unresolved flags (:func:`unresolved_flags`: frames the annotation
+    could not label, failed objects, not resolved by a reviewer) is refused unless
+    ``allow_flagged`` (then only its labelled frames go in, as always)."""
     writer = WRITERS.get(layout)
     if writer is None:
         raise TdofError(f"--layout must be {' or '.join(WRITERS)}, got '{layout}'")
+    if not allow_flagged:
+        check_flags([d for d in scenes if Path(d).is_dir()])
     return writer(scenes, out, split=split, add=add, show_progress=show_progress)
 
 
 __all__ = ["BUILD_MARKER", "SPLIT_RULES", "TARGET_MIN_VISIB", "WRITERS", "build_bop_dataset", "build_dataset",
-           "build_dataset_in_layout", "pack", "split_images", "stats", "write_bop_layout", "write_splits",
-           "write_tdof20_layout"]
+           "build_dataset_in_layout", "check_flags", "pack", "split_images", "stats", "unresolved_flags",
+           "write_bop_layout", "write_splits", "write_tdof20_layout"]

@@ -6,8 +6,11 @@ rules, or an imported TDoF20, gets the same part).
     fit = part_images(ROOT, "simple", "train-val")     # the train part without them
     tg = write_val_targets(ROOT, "simple")             # ROOT/.cache/val_targets_simple.json
 
-Parts: ``train`` and ``test`` (as splits/{split}_{part}.json list them), ``val`` (the held-out arcs
-of the train part) and ``train-val`` (the train part minus ``val``). Where an image sits on its
+Parts: ``train`` and ``test`` (as splits/{split}_{part}.json list them), ``val`` (simple: the
+held-out arcs of the train part; hard: its held-out training scenes, arcs where a dataset has too
+few training scenes of a kind to spare one, :func:`tdof20.dataset.splits.hard_val_scenes`, decided
+among the scenes of the dataset's train part) and ``train-val`` (the train part minus ``val``).
+Where an image sits on its
 arm position's turntable: a tdof20 dataset built here records each scene's ``steps`` and ``n_arms``
 (dataset_info.json "layout"; im_id = arm * steps + step); a scene without them (an imported
 TDoF20) is taken as 4 arm positions of equally many frames, in the order of its image ids.
@@ -55,6 +58,7 @@ def split_with_val(root: str | Path, split: str) -> tuple[list[tuple[int, int]],
         raise TdofError("a BOP-layout dataset has no validation part (no turntable arcs): train on its split "
                         "folder and hold images out with an explicit list", root)
     train_images = ds.frames(split, "train")
+    scenes = {sid for sid, _ in train_images}
     keep, val = [], []
     pos: dict[int, dict] = {}
     for sid, im in train_images:
@@ -62,7 +66,7 @@ def split_with_val(root: str | Path, split: str) -> tuple[list[tuple[int, int]],
             pos[sid] = _positions(ds, sid)
         p = pos[sid]
         k = im if p["index"] is None else p["index"].get(im, im)
-        part = part_of(split, sid, k, p["steps"], p["n_arms"], with_val=True)
+        part = part_of(split, sid, k, p["steps"], p["n_arms"], with_val=True, scenes=scenes)
         (val if part == VAL_PART else keep).append((sid, im))
     return keep, val
 

@@ -4,32 +4,41 @@
     out = reproduce("repro", preset="smoke")                  # -> repro/tables/tables.md
     out = reproduce("repro", config="my.toml", dataset="ROOT")  # a TOML over a preset; a given dataset
 
+A fair benchmark (../shared/design.md, docs/reproduce.md "A fair comparison"): every compared row
+is trained with the same budget (train.images images seen, whatever the method's batch), gets the
+same number of candidate sets chosen on validation, is trained and predicted once per seed
+(train.seeds; the tables show mean and spread) and sees no privileged input.
+
 Stages (each finished job is recorded in ``DIR/reproduce.json`` with the config's digest)::
 
     dataset    simulated TDoF20 scenes (capture on the simulated rig + oracle labels, as
                ``tdof20 sim label`` writes them) gathered by ``dataset build`` -> DIR/dataset;
                or the given dataset root (e.g. an imported TDoF20), used in place
-    train      every method on each protocol's train part minus its validation part
-               -> DIR/runs/<method>_<protocol>/ (plus the ablations' HFF6DoF runs on hard:
-               fuse<N>_hard, noseg_hard, and the paper's pose recovery's own run hff6dof-3d_<protocol>,
-               trained with vector_origin = "observed"); with several epochs, epoch by epoch: each
-               validated epoch's checkpoint is predicted and scored on the validation part and the
-               best one is copied to RUN/kept/ ([select])
+    train      per seed, every method on each protocol's train part minus its validation part
+               -> DIR/runs/<method>_<protocol>_s<seed>/ (plus HFF6DoF's 3D-voting row's own run
+               hff6dof-3d_<protocol>, trained with vector_origin = "observed", and the ablations'
+               HFF6DoF runs on hard: fuse<N>_hard, noseg_hard with the segmentation network
+               segnet_hard whose masks it predicts with); each for train.images images; epoch by
+               epoch where epochs are chosen: each validated epoch's checkpoint is predicted and
+               scored on the validation part and the best one is copied to RUN/kept/ ([select])
     choose     on the validation part only: the prediction-time options of [candidates.<method>]
-               (the input depth mode, thresholds) on each kept checkpoint; which of HFF6DoF's two
-               pose recoveries (bearing + PnP, 3D voting + LSQ) stands for HFF6DoF in the
-               agreement claims, per protocol
+               (the input depth mode, thresholds) on each kept checkpoint
     predict    each kept checkpoint on its test part, with the options chosen -> DIR/results/<name>.csv
                (+ _info.json); ``hff6dof-3d`` with voting = "3d"
     score      ADD(S), 2D projection, AUC and accuracy curves -> DIR/scores/<name>.json, with
-               "oracle_masks" when ground-truth masks picked the pixels (the run without the
-               segmentation head)
+               "oracle_masks" when ground-truth masks picked the pixels (only a row marked oracle)
     profile    Table 3 (parameters, multiply-adds at 480x640, FPS) of every method -> DIR/profile.json
-    tables     DIR/tables/: tables.md (with what was chosen on validation), CSV, JSON, plots
+    tables     DIR/tables/: tables.md (mean ± half-range over the seeds, what was chosen on
+               validation), CSV, JSON, plots
 
 The test part is predicted and scored once per result, after every choice: nothing is chosen on it.
 Validation predictions go to DIR/val/<run>/ (their targets DIR/val/targets_<protocol>.json) and
 their figures to reproduce.json ("validation"), so that a resumed run predicts none twice.
+
+Executors: "local" runs the jobs one after the other; "ray" runs every training, choice,
+prediction and Table 3 as a Ray task with its resource needs (CPUs, GPUs) as soon as the jobs it
+needs are done (:func:`job_plan`'s "needs"), on a local instance or a cluster (``ray_address``).
+Both record the same jobs in the same reproduce.json, so either resumes the other's run.
 
 Resuming: a rerun on the same DIR skips the jobs recorded as done (a training interrupted in the
 middle resumes from its checkpoint); a rerun with another config (another preset, TOML or
@@ -45,9 +54,10 @@ scale). A TOML file sets any option over the preset it names (``preset = "cpu"``
     scenes = ["single/juice_cup_340", "multi/08"]
     [train]
     image_size = [32, 48]
-    max_steps = 2
-    [epochs]
-    hff6dof = 1
+    images = 64                # the budget of every run: images seen (steps x batch)
+    seeds = [0, 1]             # every row once per seed
+    [batch]
+    pvnet = 8                  # a method's own batch (default train.batch_size): the same images, fewer steps
     [ablations]
     fuse_stages = [1, 3]
     segmentation = true
@@ -58,6 +68,8 @@ scale). A TOML file sets any option over the preset it names (``preset = "cpu"``
     max_images = 0             # at most this many validation images per protocol (0 = all)
     [candidates.hff6dof]       # prediction-time options chosen on validation (first = default)
     depth_mode = ["filled", "raw"]
+    [candidates.pvnet]         # every compared row the same number of candidate sets
+    inlier_cos = [0.99, 0.97]
 
 The config and the presets live in :mod:`tdof20.experiments.reproduce_config` (the methods' parts
 come from their registry records), the jobs a config makes in :mod:`tdof20.experiments.reproduce_plan`
@@ -71,16 +83,14 @@ score / profile go through the small adapter functions below (:func:`train_run`,
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import hashlib
 import json
 import os
 import resource
 import shutil
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from tdof20.capture import run_capture, sim_config
 from tdof20.dataset.build import build_dataset
@@ -91,11 +101,13 @@ from tdof20.dataset.splits import validation_images  # noqa: F401  (re-exported:
 from tdof20.dataset.validation import part_images, val_targets
 from tdof20.errors import TdofError
 from tdof20.experiments.reproduce_config import (CANDIDATES, CHOICE_OPTIONS, LABELS, METHODS, PRESETS,  # noqa: F401
-                                                 AblationConfig, DataConfig, EpochsConfig, ProfileConfig,
+                                                 SEGNET, AblationConfig, BatchConfig, DataConfig, ProfileConfig,
                                                  ReproduceConfig, SelectConfig, changed_keys, check_candidates,
-                                                 config_data, config_digest, flat_keys, make_config)
-from tdof20.experiments.reproduce_plan import (candidate_grid, choice_source, estimate, job_plan,  # noqa: F401
-                                               plan, planned_predictions, planned_runs, validated_epochs)
+                                                 config_data, config_digest, flat_keys, make_config,
+                                                 segnet_available)
+from tdof20.experiments.reproduce_plan import (budgets, candidate_grid, choice_source, estimate,  # noqa: F401
+                                               job_plan, plan, planned_predictions, planned_runs, run_schedule,
+                                               validated_epochs)
 from tdof20.experiments.reproduce_report import choices, dataset_objects, table_entries, tables_header
 from tdof20.experiments.tables import curves_from_evaluation, write_tables
 from tdof20.formats.io import read_json, write_json
@@ -110,33 +122,36 @@ FORMAT = "tdof20-reproduce"
 # the adapter: the only calls into training, prediction, scoring and profiling
 
 
-def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConfig, epochs: int,
+def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConfig, schedule: dict,
               show: bool, stop_epoch: int | None = None, **options) -> Path:
-    """Train (or continue) ``run`` on the train part minus the validation part of ``split``, for
-    ``epochs`` epochs in all; with ``stop_epoch`` the call ends after that epoch (the schedule still
-    spans ``epochs``). ``options``: the run's options of the method's config (an ablation's
+    """Train (or continue) ``run`` on the train part minus the validation part of ``split`` with
+    ``schedule`` ({"epochs", "steps", "batch", "seed"}: :func:`run_schedule` of the run's budget, and
+    its seed); with ``stop_epoch`` the call ends after that epoch (the schedule still spans all
+    the steps). ``options``: the run's options of the method's config (an ablation's
     ``fuse_stages``, ``vector_origin``, ...) over ``[method_options.<method>]``."""
     from tdof20.methods.train import train  # imports torch
 
     t = cfg.train
     return train(root, split, run, method=method, method_config=cfg.method_options.get(method),
-                 method_options=options, image_size=tuple(t.image_size), batch_size=t.batch_size,
-                 epochs=int(epochs), lr=t.lr, max_steps=t.max_steps or None, num_workers=t.num_workers, seed=t.seed,
-                 device=cfg.device, progress=show, part="train-val", stop_epoch=stop_epoch)
+                 method_options=options, image_size=tuple(t.image_size), batch_size=int(schedule["batch"]),
+                 epochs=int(schedule["epochs"]), lr=t.lr, max_steps=int(schedule["steps"]),
+                 num_workers=t.num_workers, seed=int(schedule["seed"]), device=cfg.device, progress=show,
+                 part="train-val", stop_epoch=stop_epoch)
 
 
 def predict_run(run: Path, root: Path, split: str, out_csv: Path, cfg: ReproduceConfig, show: bool,
-                part: str = "test", images: list[tuple[int, int]] | None = None, **options) -> dict:
+                part: str = "test", images: list[tuple[int, int]] | None = None, seed: int = 0,
+                **options) -> dict:
     """Predict ``part`` ('test' or 'val'; ``images``: these validation images only) of ``split`` with
-    the run folder ``run`` into ``out_csv`` (+ ``_info.json``); ``options``: the method's prediction
-    options (its config's names). Returns the summary."""
+    the run folder ``run`` into ``out_csv`` (+ ``_info.json``); ``seed``: the row's (its RANSAC);
+    ``options``: the method's prediction options (its config's names). Returns the summary."""
     from tdof20.methods.predict import info_path, predict, predict_rows  # imports torch
 
     for p in (out_csv, info_path(out_csv)):  # a rerun of an interrupted prediction starts afresh
         if p.exists():
             p.unlink()
     out_csv.parent.mkdir(parents=True, exist_ok=True)
-    kw = dict(device=cfg.device, num_workers=cfg.train.num_workers, seed=cfg.train.seed, progress=show,
+    kw = dict(device=cfg.device, num_workers=cfg.train.num_workers, seed=seed, progress=show,
               method_options=dict(options) or None, part=part)
     if images is None:
         predict(run, root, split, out_csv, **kw)
@@ -228,13 +243,6 @@ def _cpu_seconds() -> float:
     return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
 
-@dataclass
-class Job:
-    name: str            # "train/pvnet/simple"
-    stage: str           # dataset | train | predict | score | profile | tables
-    run: Callable[[], dict]
-
-
 def _sim_dataset(out: Path, cfg: ReproduceConfig, show: bool) -> Path:
     from tdof20.sim.truth import oracle_scene  # imports open3d
 
@@ -304,9 +312,11 @@ class Validation:
             write_json(path, tg, indent=None)
         return path
 
-    def figure(self, name: str, run_dir: Path, split: str, step: int, epoch: int, options: dict) -> dict:
+    def figure(self, name: str, run_dir: Path, split: str, step: int, epoch: int, options: dict,
+               seed: int = 0) -> dict:
         """The validation figure of run ``name``'s checkpoint at ``step`` (in ``run_dir``) predicted
-        with ``options``: {"step", "epoch", "options", "add_s", "proj2d", "targets", "results"}."""
+        with ``options`` (``seed``: the run's): {"step", "epoch", "options", "add_s", "proj2d",
+        "targets", "results"}."""
         cache = self.state.data.setdefault("validation", {}).setdefault(name, [])
         key = _opts_key(options)
         for f in cache:
@@ -315,7 +325,7 @@ class Validation:
         tag = f"step{step:06d}_" + hashlib.sha256(key.encode()).hexdigest()[:8]
         csv = self.out / "val" / name / f"{tag}.csv"
         predict_run(run_dir, self.root, split, csv, self.cfg, False, part="val", images=self.images(split),
-                    **options)
+                    seed=seed, **options)
         sc = score_run(csv, self.root, split, part="val", targets=self.targets(split))
         f = {"step": int(step), "epoch": int(epoch), "options": options, "add_s": sc["mean"].get("add_s"),
              "proj2d": sc["mean"].get("proj2d"), "targets": int(sc["mean"].get("n", 0)), "results": str(csv)}
@@ -362,13 +372,14 @@ def _keep(run: Path, step: int) -> Path:
     return kept
 
 
-def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, default_options: dict,
+def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, schedule: dict, default_options: dict,
                     val: Validation, show: bool) -> dict:
-    """Train run ``r`` on train minus val, epoch by epoch where epochs are chosen: after each
-    validated epoch its checkpoint is predicted and scored on validation (with ``default_options``)
-    and the best one is copied to RUN/kept/. Resumable at any point."""
+    """Train run ``r`` on train minus val (``schedule``: its steps, batch, epochs and seed), epoch by
+    epoch where epochs are chosen: after each validated epoch its checkpoint is predicted and
+    scored on validation (with ``default_options``) and the best one is copied to RUN/kept/.
+    Resumable at any point."""
     run = out / "runs" / r["name"]
-    marks = validated_epochs(cfg, r["epochs"])
+    marks = validated_epochs(cfg, schedule["epochs"])
     key = _opts_key(default_options)
     cached = {f["epoch"]: f for f in val.state.data.get("validation", {}).get(r["name"], [])
               if _opts_key(f["options"]) == key}
@@ -376,14 +387,15 @@ def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, defaul
     for n, e in enumerate(marks):
         f, new = cached.get(e), False
         if f is None:
-            train_run(root, r["split"], run, r["method"], cfg, r["epochs"], show,
+            train_run(root, r["split"], run, r["method"], cfg, schedule, show,
                       stop_epoch=None if len(marks) == 1 else e, **r["options"])
             h = _history(run)
             if len(marks) == 1 or (n == 0 and h["ended"]):
                 break  # one checkpoint: nothing to choose
             if figures and figures[-1]["step"] == h["step"]:
-                break  # the run ended (max_steps) before this epoch: the same checkpoint
-            f, new = val.figure(r["name"], run, r["split"], h["step"], h["epoch"], default_options), True
+                break  # the run ended before this epoch: the same checkpoint
+            f, new = val.figure(r["name"], run, r["split"], h["step"], h["epoch"], default_options,
+                                seed=r["seed"]), True
         figures.append(f)
         if _better(f, best):
             best = f
@@ -395,15 +407,294 @@ def _train_and_keep(out: Path, root: Path, cfg: ReproduceConfig, r: dict, defaul
     kept = run if best is None else run / KEPT
     return {"run": str(run), "kept": str(kept), "kept_step": h["step"] if best is None else best["step"],
             "kept_epoch": h["epoch"] if best is None else best["epoch"], "epochs": h["epoch"],
-            "steps": h["step"], "last_loss": h["loss"],
+            "steps": h["step"], "batch": schedule["batch"], "images_seen": h["step"] * schedule["batch"],
+            "seed": r["seed"], "last_loss": h["loss"],
             "validation": [{k: f[k] for k in ("epoch", "step", "add_s", "proj2d")} for f in figures]}
 
 
+class TaskState:
+    """What a job run as a Ray task sees of the state: the jobs done when it was sent and the
+    validation figures (read-only copies), its own new validation figures saved to
+    DIR/tasks/<job>.json as they come (so that a task killed half-way predicts none of them again
+    when the run resumes); the driver merges them into reproduce.json when the task returns."""
+
+    def __init__(self, out: Path, job: str, jobs: dict, validation: dict):
+        self.path = out / "tasks" / (job.replace("/", "__") + ".json")
+        validation = json.loads(json.dumps(validation))
+        if self.path.exists():
+            try:
+                _merge_validation(validation, read_json(self.path).get("validation", {}))
+            except TdofError:
+                pass  # a task killed while writing it: its figures are made again
+        self.data = {"jobs": jobs, "validation": validation}
+
+    def save(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(self.path, {"validation": self.data["validation"]})
+
+    def done(self, job: str) -> bool:
+        return job in self.data["jobs"]
+
+    def get(self, job: str) -> dict:
+        return self.data["jobs"][job]
+
+
+def _merge_validation(into: dict, new: dict) -> dict:
+    """Add the validation figures of ``new`` ({run: [figures]}) that ``into`` lacks (same step and
+    options); returns ``into``."""
+    for run, figs in new.items():
+        have = into.setdefault(run, [])
+        keys = {(f["step"], _opts_key(f["options"])) for f in have}
+        have += [f for f in figs if (f["step"], _opts_key(f["options"])) not in keys]
+    return into
+
+
+class Runner:
+    """The jobs of one reproduce config (:func:`job_plan`'s specs): ``run(spec)`` -> the info
+    recorded for it. The same code runs a job in this process (``state`` the run's :class:`State`)
+    or in a Ray task (a :class:`TaskState`)."""
+
+    def __init__(self, out: Path, root: Path, cfg: ReproduceConfig, state, show: bool):
+        self.out, self.root, self.cfg, self.state, self.show = out, root, cfg, state, show
+        self.val = Validation(out, root, cfg, state, show)
+        self.preds = {p["name"]: p for p in planned_predictions(cfg)}
+        self.runs = {r["name"]: r for r in planned_runs(cfg)}
+        self.plan = {r["name"]: r for r in plan(cfg)["runs"]}
+
+    def schedule(self, r: dict) -> dict:
+        n = self.plan[r["name"]]["images"]
+        return {**run_schedule(r["images"], r["batch"], n), "seed": r["seed"]}
+
+    def absolute(self, options: dict) -> dict:
+        """Options with the segmentation network's run folder (relative to DIR in the plan) made absolute."""
+        if "seg_run" in options and not Path(options["seg_run"]).is_absolute():
+            return {**options, "seg_run": str(self.out / options["seg_run"])}
+        return options
+
+    def kept(self, p: dict) -> dict:
+        return self.state.get(f"train/{p['run']}")
+
+    def options_of(self, p: dict) -> dict:
+        """The options the test prediction of ``p`` uses: the row's own, and those chosen on validation."""
+        src = choice_source(self.cfg, p)
+        c = f"choose/{src['name']}"
+        chosen = self.state.get(c)["options"] if self.state.done(c) else candidate_grid(self.cfg, src)[0]
+        return {**{k: v for k, v in chosen.items() if k not in p["options"]}, **p["options"]}
+
+    def run(self, spec: dict) -> dict:
+        return getattr(self, f"{spec['stage']}_job")(spec)
+
+    def dataset_job(self, spec: dict) -> dict:
+        if self.cfg.dataset:
+            return {"root": str(self.root), "given": True}
+        _sim_dataset(self.out, self.cfg, self.show)
+        return {"root": str(self.root), "given": False}
+
+    def train_job(self, spec: dict) -> dict:
+        r = self.runs[spec["name"].removeprefix("train/")]
+        sch = self.schedule(r)
+        if r["method"] == SEGNET:  # the segmentation ablation's masks: no pose to validate, its last weights
+            run = self.out / "runs" / r["name"]
+            train_run(self.root, r["split"], run, r["method"], self.cfg, sch, self.show, **r["options"])
+            h = _history(run)
+            return {"run": str(run), "kept": str(run), "kept_step": h["step"], "kept_epoch": h["epoch"],
+                    "epochs": h["epoch"], "steps": h["step"], "batch": sch["batch"],
+                    "images_seen": h["step"] * sch["batch"], "seed": r["seed"], "last_loss": h["loss"],
+                    "validation": []}
+        p = next(q for q in self.preds.values() if q["run"] == r["name"])
+        default = self.absolute({**candidate_grid(self.cfg, choice_source(self.cfg, p))[0], **p["options"]})
+        return _train_and_keep(self.out, self.root, self.cfg, r, sch, default, self.val, self.show)
+
+    def choose_job(self, spec: dict) -> dict:
+        p = self.preds[spec["name"].removeprefix("choose/")]
+        k = self.kept(p)
+        figs, best, chosen = [], None, spec["grid"][0]
+        for combo in spec["grid"]:
+            f = self.val.figure(p["run"], Path(k["kept"]), p["split"], k["kept_step"], k["kept_epoch"],
+                                self.absolute({**combo, **p["options"]}), seed=p["seed"])
+            figs.append({"options": f["options"], "add_s": f["add_s"], "proj2d": f["proj2d"]})
+            if _better(f, best):
+                best, chosen = f, combo
+        return {"options": chosen, "validation": figs, "epoch": k["kept_epoch"]}
+
+    def predict_job(self, spec: dict) -> dict:
+        p = self.preds[spec["name"].removeprefix("predict/")]
+        csv = self.out / "results" / f"{p['name']}.csv"
+        csv.parent.mkdir(parents=True, exist_ok=True)
+        opts = self.options_of(p)
+        k = self.kept(p)
+        info = predict_run(Path(k["kept"]), self.root, p["split"], csv, self.cfg, self.show, part="test",
+                           seed=p["seed"], **self.absolute(opts))
+        if info.get("masks") == "gt" and not p["oracle"]:
+            raise TdofError(f"{p['name']} is a compared row but was predicted with ground-truth masks, a privileged "
+                            "input: give its method a segmentation (masks = \"network\")", csv)
+        return {"results": str(csv), "masks": info.get("masks"), "predictions": info.get("predictions"),
+                "dropped_impossible_poses": info.get("dropped_impossible_poses", 0),
+                "run": k["kept"], "epoch": k["kept_epoch"], "options": opts}
+
+    def score_job(self, spec: dict) -> dict:
+        p = self.preds[spec["name"].removeprefix("score/")]
+        csv = self.out / "results" / f"{p['name']}.csv"
+        pred = self.state.get(f"predict/{p['name']}")
+        s = score_run(csv, self.root, p["split"], part="test")
+        s["oracle_masks"] = pred.get("masks") == "gt"
+        s["method"], s["label"], s["split"], s["seed"], s["row"] = (p["method"], p["label"], p["split"], p["seed"],
+                                                                    p["row"])
+        train = self.kept(p)
+        s["chosen"] = {"epoch": train["kept_epoch"], "options": pred["options"]}
+        s["budget"] = {"images_seen": train.get("images_seen"), "steps": train.get("steps"),
+                       "batch": train.get("batch")}
+        if p["role"] == "noseg" and not s["oracle_masks"]:
+            seg = self.state.get(f"train/{SEGNET}_hard_s{p['seed']}")
+            s["budget"]["segnet_images_seen"] = seg.get("images_seen")
+        if p["options"].get("voting") == "3d":
+            s["note"] = ("the paper's pose recovery: 3D voting on the back-projected input depth + least squares, "
+                         "trained with vectors from those observed points")
+        f = self.out / "scores" / f"{p['name']}.json"
+        f.parent.mkdir(parents=True, exist_ok=True)
+        write_json(f, s)
+        return {"scores": str(f), "add_s": s["mean"].get("add_s"), "proj2d": s["mean"].get("proj2d"),
+                "oracle_masks": s["oracle_masks"]}
+
+    def profile_job(self, spec: dict) -> dict:
+        recs = profile_methods(tuple(self.cfg.methods), self.cfg)
+        write_json(self.out / "profile.json", recs)
+        return {"profile": str(self.out / "profile.json")}
+
+
+#: the stages a Ray executor runs as tasks (the others, cheap, run in the driver)
+RAY_STAGES = ("train", "choose", "predict", "profile")
+
+
+def job_resources(cfg: ReproduceConfig, stage: str, gpus_per_job: float) -> dict:
+    """A Ray task's resource needs: a training, choice or prediction one CPU plus its data-loader
+    workers and ``gpus_per_job`` GPUs; Table 3's profiling one CPU and the same GPUs."""
+    cpus = 1 if stage == "profile" else 1 + cfg.train.num_workers
+    return {"num_cpus": cpus, "num_gpus": gpus_per_job}
+
+
+def _ray_job(out: Path, root: Path, cfg: ReproduceConfig, spec: dict, jobs: dict, validation: dict) -> dict:
+    """One job in a Ray task: (seconds, CPU seconds, info, the validation figures it holds)."""
+    state = TaskState(out, spec["name"], jobs, validation)
+    t0, c0 = time.perf_counter(), _cpu_seconds()
+    info = Runner(out, root, cfg, state, False).run(spec)
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - c0, "info": info,
+            "validation": state.data["validation"]}
+
+
+def _finish(state: State, spec: dict, seconds: float, cpu: float, info: dict) -> None:
+    state.finish(spec["name"], seconds, stage=spec["stage"], cpu_seconds=round(cpu, 2), **info)
+    if spec["stage"] == "train":  # over: its optimiser state is two thirds of the checkpoint, and dead
+        from tdof20.methods.runs import drop_optimizer  # imports torch
+
+        drop_optimizer(info["run"])
+
+
+def _run_local(runner: Runner, todo: list[dict], state: State, bar, task) -> None:
+    for spec in todo:
+        bar.update(task, description=f"reproduce: {spec['name']}")
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        info = runner.run(spec)
+        _finish(state, spec, time.perf_counter() - t0, _cpu_seconds() - c0, info)
+        bar.advance(task)
+
+
+def _ray_gpus(cfg: ReproduceConfig, gpus_per_job: float | None) -> float:
+    """GPUs per task: as given, else 1 where the device may be a GPU and the cluster has some, else 0."""
+    import ray
+
+    if gpus_per_job is not None:
+        return float(gpus_per_job)
+    has = float(ray.cluster_resources().get("GPU", 0)) > 0
+    return 1.0 if has and cfg.device not in ("cpu", "mps") else 0.0
+
+
+def _run_ray(runner: Runner, todo: list[dict], state: State, bar, task, address: str | None,
+             gpus_per_job: float | None, workers: int | None) -> None:
+    """Run the jobs on a Ray cluster (``address``; None: a local instance of ``workers`` CPUs, all
+    by default): each training, choice, prediction and Table 3 as a task with its resource needs
+    (:func:`job_resources`) as soon as the jobs it needs are done; the dataset and the scoring in
+    this process. Each finished job is recorded at once, so a run stopped anywhere resumes."""
+    from tdof20.annotate.executors import ray_init
+
+    own = ray_init(address, workers)
+    import ray
+
+    try:
+        gpus = _ray_gpus(runner.cfg, gpus_per_job)
+        remote = ray.remote(_ray_job)
+        waiting = list(todo)
+        running: dict = {}
+        while waiting or running:
+            ready = [s for s in waiting if all(state.done(n) for n in s["needs"])]
+            for spec in ready:
+                waiting.remove(spec)
+                if spec["stage"] in RAY_STAGES:
+                    opts = job_resources(runner.cfg, spec["stage"], gpus)
+                    ref = remote.options(**opts, max_retries=0).remote(
+                        runner.out, runner.root, runner.cfg, spec, state.data["jobs"],
+                        state.data.get("validation", {}))
+                    running[ref] = spec
+                else:
+                    bar.update(task, description=f"reproduce: {spec['name']}")
+                    t0, c0 = time.perf_counter(), _cpu_seconds()
+                    info = runner.run(spec)
+                    _finish(state, spec, time.perf_counter() - t0, _cpu_seconds() - c0, info)
+                    bar.advance(task)
+                    break  # what it finished may make others ready
+            else:
+                if not running:
+                    if waiting:
+                        raise TdofError(f"jobs wait for jobs that are not planned: {waiting[0]['name']} needs "
+                                        f"{waiting[0]['needs']}")
+                    break
+                bar.update(task, description=f"reproduce: {len(running)} job(s) on Ray")
+                done, _ = ray.wait(list(running), num_returns=1)
+                spec = running.pop(done[0])
+                try:
+                    got = ray.get(done[0])
+                except ray.exceptions.RayTaskError as e:
+                    for ref in running:
+                        ray.cancel(ref)
+                    cause = e.cause if isinstance(getattr(e, "cause", None), BaseException) else e
+                    text = (str(cause).strip().splitlines() or [""])[0]
+                    raise TdofError(f"job {spec['name']} failed on Ray: {type(cause).__name__}: {text} (rerun to "
+                                    "resume: finished jobs are kept)") from None
+                state.data["validation"] = _merge_validation(state.data.get("validation", {}), got["validation"])
+                _finish(state, spec, got["seconds"], got["cpu_seconds"], got["info"])
+                (runner.out / "tasks" / (spec["name"].replace("/", "__") + ".json")).unlink(missing_ok=True)
+                bar.advance(task)
+    finally:
+        if own:
+            ray.shutdown()
+
+
+EXECUTORS = ("local", "ray")
+
+
 def reproduce(out: str | Path, preset: str | None = None, config: str | Path | dict | None = None,
-              dataset: str | Path | None = None, progress: bool = True) -> Path:
+              dataset: str | Path | None = None, progress: bool = True, executor: str = "local",
+              ray_address: str | None = None, gpus_per_job: float | None = None,
+              workers: int | None = None) -> Path:
     """Run (or resume) the reproduction into ``out``; returns DIR/tables/tables.md. See the module
-    docstring for the stages, presets and resume rules."""
+    docstring for the stages, presets and resume rules. ``executor``: "local" (the jobs one after
+    the other in this process) or "ray" (the independent jobs side by side as Ray tasks on the
+    cluster at ``ray_address``, None = a local instance of ``workers`` CPUs; ``gpus_per_job``: GPUs
+    per task, None = 1 where the cluster has GPUs and the device is not the CPU). Both make the
+    same jobs, record them in the same reproduce.json and so resume each other's runs."""
+    if executor not in EXECUTORS:
+        raise TdofError(f"--executor must be one of {', '.join(EXECUTORS)}, got '{executor}'")
+    if executor != "ray" and (ray_address or gpus_per_job is not None):
+        raise TdofError("--ray-address and --gpus-per-job go with --executor ray")
+    if gpus_per_job is not None and gpus_per_job < 0:
+        raise TdofError(f"--gpus-per-job must be >= 0, got {gpus_per_job}")
     cfg = make_config(preset, config, dataset)
+    if cfg.ablations.segmentation and cfg.ablations.segmentation_masks == "segnet" and not segnet_available():
+        cfg = dataclasses.replace(cfg, ablations=dataclasses.replace(cfg.ablations, segmentation_masks="gt"))
+        if progress:
+            console.print("segmentation ablation: this version has no separately trained segmentation network "
+                          f"('{SEGNET}'): the row without HFF6DoF's head takes ground-truth masks, an oracle row "
+                          "outside every claim", markup=False, highlight=False)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise TdofError("--out is a file, not a folder", out)
@@ -411,119 +702,26 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
         open_dataset(cfg.dataset)  # the one "not a dataset" check, before anything is written
     from tdof20.methods.devices import select_device  # imports torch
 
-    try:
-        select_device(cfg.device)  # a device this machine lacks stops here, not after the dataset
-    except TdofError as e:
-        raise TdofError(str(e).replace("--device", "device", 1), config if isinstance(config, (str, Path)) else None) \
-            from None
+    if executor == "local":  # a Ray cluster's devices are its workers', not this machine's
+        try:
+            select_device(cfg.device)  # a device this machine lacks stops here, not after the dataset
+        except TdofError as e:
+            raise TdofError(str(e).replace("--device", "device", 1),
+                            config if isinstance(config, (str, Path)) else None) from None
     state = State(out, cfg)
     root = Path(cfg.dataset) if cfg.dataset else out / "dataset"
-    val = Validation(out, root, cfg, state, progress)
-    preds = {p["name"]: p for p in planned_predictions(cfg)}
-    runs = {r["name"]: r for r in planned_runs(cfg)}
-
-    def kept(p: dict) -> dict:
-        return state.get(f"train/{p['run']}")
-
-    def options_of(p: dict) -> dict:
-        """The options the test prediction of ``p`` uses: the row's own, and those chosen on validation."""
-        src = choice_source(cfg, p)
-        c = f"choose/{src['name']}"
-        chosen = state.get(c)["options"] if state.done(c) else candidate_grid(cfg, src)[0]
-        return {**{k: v for k, v in chosen.items() if k not in p["options"]}, **p["options"]}
-
-    def val_figure(p: dict) -> dict:
-        """p's kept checkpoint with its chosen options, on validation (cached)."""
-        k = kept(p)
-        return val.figure(p["run"], Path(k["kept"]), p["split"], k["kept_step"], k["kept_epoch"], options_of(p))
-
-    def dataset_job(spec: dict) -> dict:
-        if cfg.dataset:
-            return {"root": str(root), "given": True}
-        _sim_dataset(out, cfg, progress)
-        return {"root": str(root), "given": False}
-
-    def train_job(spec: dict) -> dict:
-        r = runs[spec["name"].removeprefix("train/")]
-        p = next(q for q in preds.values() if q["run"] == r["name"])
-        default = {**candidate_grid(cfg, choice_source(cfg, p))[0], **p["options"]}
-        return _train_and_keep(out, root, cfg, r, default, val, progress)
-
-    def choose_job(spec: dict) -> dict:
-        p = preds[spec["name"].removeprefix("choose/")]
-        k = kept(p)
-        figs, best = [], None
-        for combo in spec["grid"]:
-            f = val.figure(p["run"], Path(k["kept"]), p["split"], k["kept_step"], k["kept_epoch"],
-                           {**combo, **p["options"]})
-            figs.append({"options": f["options"], "add_s": f["add_s"], "proj2d": f["proj2d"]})
-            if _better(f, best):
-                best, chosen = f, combo
-        return {"options": chosen, "validation": figs, "epoch": k["kept_epoch"]}
-
-    def formulation_job(spec: dict) -> dict:
-        figs = {name: val_figure(preds[name]) for name in spec["pair"]}
-        best = None
-        for name, f in figs.items():  # the default (bearing + PnP) first: it wins ties
-            if _better(f, best):
-                best, primary = f, name
-        return {"primary": primary,
-                "validation": {n: {"add_s": f["add_s"], "proj2d": f["proj2d"]} for n, f in figs.items()}}
-
-    def predict_job(spec: dict) -> dict:
-        p = preds[spec["name"].removeprefix("predict/")]
-        csv = out / "results" / f"{p['name']}.csv"
-        csv.parent.mkdir(parents=True, exist_ok=True)
-        opts = options_of(p)
-        info = predict_run(Path(kept(p)["kept"]), root, p["split"], csv, cfg, progress, part="test", **opts)
-        return {"results": str(csv), "masks": info.get("masks"), "predictions": info.get("predictions"),
-                "dropped_impossible_poses": info.get("dropped_impossible_poses", 0),
-                "run": kept(p)["kept"], "epoch": kept(p)["kept_epoch"], "options": opts}
-
-    def score_job(spec: dict) -> dict:
-        p = preds[spec["name"].removeprefix("score/")]
-        csv = out / "results" / f"{p['name']}.csv"
-        masks = state.get(f"predict/{p['name']}").get("masks")
-        s = score_run(csv, root, p["split"], part="test")
-        s["oracle_masks"] = masks == "gt"
-        s["method"], s["label"], s["split"] = p["method"], p["label"], p["split"]
-        s["chosen"] = {"epoch": kept(p)["kept_epoch"], "options": state.get(f"predict/{p['name']}")["options"]}
-        if p["options"].get("voting") == "3d":
-            s["note"] = ("the paper's pose recovery: 3D voting on the back-projected input depth + least squares, "
-                         "trained with vectors from those observed points")
-        f = out / "scores" / f"{p['name']}.json"
-        f.parent.mkdir(parents=True, exist_ok=True)
-        write_json(f, s)
-        return {"scores": str(f), "add_s": s["mean"].get("add_s"), "proj2d": s["mean"].get("proj2d"),
-                "oracle_masks": s["oracle_masks"]}
-
-    def profile_job(spec: dict) -> dict:
-        recs = profile_methods(tuple(cfg.methods), cfg)
-        write_json(out / "profile.json", recs)
-        return {"profile": str(out / "profile.json")}
-
-    stages = {"dataset": dataset_job, "train": train_job, "choose": choose_job, "predict": predict_job,
-              "score": score_job, "profile": profile_job}
-    jobs = [Job(spec["name"], spec["stage"],
-                functools.partial(formulation_job if "pair" in spec else stages[spec["stage"]], spec))
-            for spec in job_plan(cfg)]  # the plan tested against every preset's (tests/reproduce_plans.json)
-
-    todo = [j for j in jobs if not state.done(j.name)]
-    console.print(f"reproduce ({cfg.preset}) -> {out}: {len(jobs)} jobs, {len(jobs) - len(todo)} done already",
-                  highlight=False, markup=False) if progress else None
+    runner = Runner(out, root, cfg, state, progress and executor == "local")
+    specs = job_plan(cfg)  # the plan tested against every preset's (tests/reproduce_plans.json)
+    todo = [s for s in specs if not state.done(s["name"])]
+    if progress:
+        console.print(f"reproduce ({cfg.preset}, {executor}) -> {out}: {len(specs)} jobs, "
+                      f"{len(specs) - len(todo)} done already", highlight=False, markup=False)
     with progress_bar(progress, unit="job") as bar:
-        task = bar.add_task("reproduce", total=len(jobs), completed=len(jobs) - len(todo))
-        for j in todo:
-            bar.update(task, description=f"reproduce: {j.name}")
-            t0, c0 = time.perf_counter(), _cpu_seconds()
-            info = j.run()
-            state.finish(j.name, time.perf_counter() - t0, stage=j.stage, cpu_seconds=round(_cpu_seconds() - c0, 2),
-                         **info)
-            if j.stage == "train":  # over: its optimiser state is two thirds of the checkpoint, and dead
-                from tdof20.methods.runs import drop_optimizer  # imports torch
-
-                drop_optimizer(info["run"])
-            bar.advance(task)
+        task = bar.add_task("reproduce", total=len(specs), completed=len(specs) - len(todo))
+        if executor == "ray":
+            _run_ray(runner, todo, state, bar, task, ray_address, gpus_per_job, workers)
+        else:
+            _run_local(runner, todo, state, bar, task)
 
     # tables (always rebuilt from what is on disk: cheap)
     entries, fusion, seg_on, seg_off = table_entries(out, cfg, state)
@@ -535,7 +733,8 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     return paths["tables.md"]
 
 
-__all__ = ["AblationConfig", "CANDIDATES", "CHOICE_OPTIONS", "DataConfig", "EpochsConfig", "LABELS", "METHODS",
-           "PRESETS", "ProfileConfig", "ReproduceConfig", "SelectConfig", "State", "Validation", "changed_keys",
-           "check_candidates", "choices", "config_data", "config_digest", "estimate", "job_plan", "make_config",
-           "plan", "predict_run", "profile_methods", "reproduce", "score_run", "train_run", "validation_images"]
+__all__ = ["AblationConfig", "BatchConfig", "CANDIDATES", "CHOICE_OPTIONS", "DataConfig", "EXECUTORS", "LABELS",
+           "METHODS", "PRESETS", "ProfileConfig", "ReproduceConfig", "Runner", "SelectConfig", "State", "TaskState",
+           "Validation", "changed_keys", "check_candidates", "choices", "config_data", "config_digest", "estimate",
+           "job_plan", "job_resources", "make_config", "plan", "predict_run", "profile_methods", "reproduce",
+           "score_run", "train_run", "validation_images"]

@@ -3,12 +3,20 @@
     cfg = make_config("smoke")                                # a preset
     cfg = make_config(config="my.toml", dataset="ROOT")       # a TOML over a preset; a given dataset
 
+A fair benchmark (../shared/design.md): every compared row gets the same training budget —
+``train.images``, images seen (optimiser steps x batch) at ``train.image_size``, whatever each
+method's batch (``[batch]``) — the same number of prediction-time candidate sets chosen on
+validation (or none for all; refused otherwise), the same seeds (``train.seeds``), and no
+privileged input (restored depth, ground-truth masks: refused for a compared row, one line naming
+the row and the input).
+
 The methods' parts come from their registry records (:class:`~tdof20.methods.contract.ReproduceSettings`):
 which methods run and in what order (:data:`METHODS`), their table labels (:data:`LABELS`), the
 prediction-time options chosen on validation (:data:`CHOICE_OPTIONS`) and the values tried
-(:data:`CANDIDATES`), the epochs of each preset (:class:`EpochsConfig`, ``[epochs]``) and a
-preset's method options (``[method_options.<method>]``). Adding a method to reproduce is adding
-its record: nothing here names one, except the paper's ablations of HFF6DoF ([ablations]).
+(:data:`CANDIDATES`) and a preset's method options (``[method_options.<method>]``). Adding a
+method to reproduce is adding its record: nothing here names one, except the paper's ablations of
+HFF6DoF ([ablations]) and the separately trained segmentation network of its segmentation
+ablation (:data:`SEGNET`), which is no pose method and no row of the tables.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ import copy
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,13 +35,27 @@ from tdof20.dataset.naming import normalize_scene_id
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_toml
 from tdof20.methods.base import IMAGE_SIDE
-from tdof20.methods.registry import Method, get_method, methods
+from tdof20.methods.registry import Method, get_method, method_names, methods
+
+#: the segmentation network the segmentation ablation's row without HFF6DoF's head takes its masks
+#: from (a registered method trained with the same train entry; predicted with masks = "segnet",
+#: seg_run = its run): not a pose method, so no row of the tables
+SEGNET = "segnet"
 
 
 def reproduced_methods() -> list[Method]:
-    """The registered methods in the tables' order (their records' ``reproduce.rank``, then the
-    registration order)."""
-    return sorted(methods(), key=lambda m: m.reproduce.rank)
+    """The registered pose methods in the tables' order (their records' ``reproduce.rank``, then
+    the registration order); the segmentation network (:data:`SEGNET`) is none of them."""
+    return sorted((m for m in methods() if m.name != SEGNET), key=lambda m: m.reproduce.rank)
+
+
+def segnet_available() -> bool:
+    """Whether this version has the segmentation network the segmentation ablation needs: the
+    registered method :data:`SEGNET` and HFF6DoF's prediction option masks = "segnet" with
+    seg_run (imports HFF6DoF's module)."""
+    if SEGNET not in method_names():
+        return False
+    return "seg_run" in {f.name for f in dataclasses.fields(get_method("hff6dof").config_class)}
 
 
 METHODS = tuple(m.name for m in reproduced_methods())
@@ -88,47 +111,71 @@ class TrainConfig:
     image_size: tuple[int, ...] = (32, 48)
     batch_size: int = 4
     lr: float = 1e-3
-    max_steps: int = 0       # 0 = the epochs decide
+    #: the training budget of every run: images seen (optimiser steps x batch), the same for every
+    #: compared row whatever its method's batch; epochs follow from it (and the part's size)
+    images: int = 24
     num_workers: int = 1
-    seed: int = 0
+    #: every row is trained (and chosen, predicted, scored) once per seed; tables show the mean and
+    #: the spread over them
+    seeds: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
         self.image_size = tuple(int(v) for v in self.image_size)
+        self.seeds = tuple(int(v) for v in self.seeds)
         if len(self.image_size) != 2:
             raise ConfigError(f"train.image_size must be [H, W], got {list(self.image_size)}")
-        check_ranges(self, "train", positive=("image_size", "batch_size", "lr"),
-                     non_negative=("max_steps", "num_workers", "seed"))
+        check_ranges(self, "train", positive=("image_size", "batch_size", "lr", "images"),
+                     non_negative=("num_workers", "seeds"))
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"train.seeds names a seed twice: {list(self.seeds)}")
         if not all(IMAGE_SIDE[0] <= v <= IMAGE_SIDE[1] for v in self.image_size):
             raise ConfigError(f"train.image_size must be within {IMAGE_SIDE[1]} pixels a side and at least "
                               f"{IMAGE_SIDE[0]}, got {list(self.image_size)}")
 
 
-def _epochs_post_init(self) -> None:
-    check_ranges(self, "epochs", positive=METHODS)
+def _batch_post_init(self) -> None:
+    check_ranges(self, "batch", non_negative=METHODS)
 
 
-#: [epochs]: training epochs per method (a field per registered method, default 1)
-EpochsConfig = dataclasses.make_dataclass(
-    "EpochsConfig", [(m.name, int, field(default=1)) for m in methods()],
-    namespace={"__post_init__": _epochs_post_init, "__doc__": "[epochs]: training epochs per method."})
-EpochsConfig.__module__ = __name__
+#: [batch]: images per optimiser step per method (a field per pose method; 0 = train.batch_size)
+BatchConfig = dataclasses.make_dataclass(
+    "BatchConfig", [(m.name, int, field(default=0)) for m in reproduced_methods()],
+    namespace={"__post_init__": _batch_post_init,
+               "__doc__": "[batch]: images per optimiser step per method (0 = train.batch_size); the budget "
+                          "train.images stays the same for every method."})
+BatchConfig.__module__ = __name__
+
+#: the segmentation ablation's masks for the row without HFF6DoF's head
+SEG_MASKS = ("segnet", "gt")
 
 
 @dataclass
 class AblationConfig:
     """[ablations]: fuse_stages (HFF6DoF trained on hard with each number of fused stages; () =
-    no fusion ablation; 3 is the main run), segmentation (HFF6DoF on hard without its head, its
-    prediction then on ground-truth masks: marked "oracle masks"), voting_3d (the paper's 3D
-    voting + least squares as a row beside the default bearing + PnP)."""
+    no fusion ablation; 3 is the main run), segmentation (HFF6DoF on hard without its head: the
+    segmentation module's ablation), segmentation_masks (where that row's object pixels come from:
+    "segnet" = a segmentation network trained separately on the same split (:data:`SEGNET`), the
+    paper's ablation; "gt" = ground-truth masks, an oracle row marked as such and outside every
+    claim), segnet_share (the part of the row's budget train.images the segmentation network
+    spends; HFF6DoF without its head spends the rest, so that the row's two trainings together
+    see as many images as every other row), voting_3d (the paper's 3D voting + least squares as a
+    row beside the default bearing + PnP: a second row of its own, not a choice)."""
 
     fuse_stages: tuple[int, ...] = ()
     segmentation: bool = False
+    segmentation_masks: str = "segnet"
+    segnet_share: float = 0.25
     voting_3d: bool = True
 
     def __post_init__(self) -> None:
         self.fuse_stages = tuple(sorted({int(v) for v in self.fuse_stages}))
         if any(not 1 <= v <= 5 for v in self.fuse_stages):
             raise ConfigError(f"ablations.fuse_stages must be in 1..5, got {list(self.fuse_stages)}")
+        if self.segmentation_masks not in SEG_MASKS:
+            raise ConfigError(f"ablations.segmentation_masks must be one of {', '.join(SEG_MASKS)}, got "
+                              f"'{self.segmentation_masks}'")
+        if not 0.0 < self.segnet_share < 1.0:
+            raise ConfigError(f"ablations.segnet_share must be between 0 and 1 (exclusive), got {self.segnet_share}")
 
 
 @dataclass
@@ -177,7 +224,7 @@ class ReproduceConfig:
     dataset: str = ""
     data: DataConfig = field(default_factory=DataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    epochs: EpochsConfig = field(default_factory=EpochsConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
     ablations: AblationConfig = field(default_factory=AblationConfig)
     profile: ProfileConfig = field(default_factory=ProfileConfig)
     select: SelectConfig = field(default_factory=SelectConfig)
@@ -199,6 +246,25 @@ class ReproduceConfig:
         if (self.ablations.fuse_stages or self.ablations.segmentation) and (
                 "hff6dof" not in self.methods or "hard" not in self.protocols):
             raise ConfigError("the ablations run HFF6DoF on hard: methods needs hff6dof and protocols hard")
+        bad = [f"{m} {self.batch_of(m)}" for m in self.methods if self.train.images % self.batch_of(m)]
+        if bad:
+            raise ConfigError(f"train.images ({self.train.images}) must be a multiple of every method's batch, so "
+                              f"that each sees the same images: not of {', '.join(bad)}")
+        if self.ablations.segmentation and self.ablations.segmentation_masks == "segnet" \
+                and self.segnet_images() >= self.train.images:
+            raise ConfigError(f"train.images ({self.train.images}) leaves nothing of the segmentation ablation's budget "
+                              f"to HFF6DoF after the segmentation network's {self.segnet_images()}: give more images")
+
+    def batch_of(self, method: str) -> int:
+        """Images per optimiser step of ``method`` ([batch], else train.batch_size)."""
+        return getattr(self.batch, method, 0) or self.train.batch_size
+
+    def segnet_images(self) -> int:
+        """The segmentation network's part of the segmentation ablation's budget: segnet_share x
+        train.images, down to a multiple of both its batch and HFF6DoF's (so both parts are
+        whole steps), at least one such multiple."""
+        unit = math.lcm(self.train.batch_size, self.batch_of("hff6dof"))
+        return max(unit, int(self.ablations.segnet_share * self.train.images) // unit * unit)
 
 
 ALL_SCENES = tuple([f"single/{i:02d}" for i in range(1, 21)] + [f"multi/{i:02d}" for i in range(20)])
@@ -206,32 +272,76 @@ ALL_SCENES = tuple([f"single/{i:02d}" for i in range(1, 21)] + [f"multi/{i:02d}"
 #: the presets that choose prediction-time options on validation (each method's candidates)
 CHOOSING_PRESETS = ("cpu", "gpu", "full")
 
-#: the prediction-time choices of the presets that choose (the first value is the default)
-CANDIDATES = {m.name: {k: list(v) for k, v in m.reproduce.candidates.items()}
-              for m in reproduced_methods() if m.reproduce.candidates}
 
-#: the presets' shared settings, as TOML-like data over the defaults (the methods' parts: :func:`_preset`)
+def candidate_table(candidates: dict, method: str, options: dict) -> dict:
+    """The candidate lists ([candidates.<method>]) that act on a row of ``method`` predicted with
+    its own ``options``: without those the method's record leaves out for such a row
+    (``unused_choices``: HFF6DoF's bearing_tol acts only with bearing voting, inlier_cos only with
+    3D voting) and without those the row fixes itself."""
+    table = dict(candidates.get(method, {}))
+    for k in list(get_method(method).reproduce.unused_choices(options)) + list(options):
+        table.pop(k, None)
+    return table
+
+
+def grid_size(table: dict) -> int:
+    """The number of candidate sets a table of lists makes (their product)."""
+    return math.prod(len(v) for v in table.values())
+
+
+#: the compared rows' own prediction options, per row kind: (method, options) for every main row
+def main_rows(methods_: tuple[str, ...], voting_3d: bool) -> list[tuple[str, dict]]:
+    rows = [(m, {}) for m in methods_]
+    if "hff6dof" in methods_ and voting_3d:
+        rows.append(("hff6dof", {"voting": "3d"}))
+    return rows
+
+
+def _equal_candidates(candidates: dict) -> dict:
+    """Every method's candidates (its record's) cut to the same number of candidate sets: the
+    smallest grid among the main rows; a record with more drops its later option lists (its first
+    ones, the record's order, are kept), so no method gets more choices on validation than another."""
+    out = copy.deepcopy(candidates)
+    rows = main_rows(METHODS, True)
+    k = min(grid_size(candidate_table(out, m, o)) for m, o in rows)
+    for m in out:
+        while max(grid_size(candidate_table(out, m, o)) for mm, o in rows if mm == m) > k and len(out[m]) > 1:
+            out[m].pop(list(out[m])[-1])
+    return out
+
+
+#: the prediction-time choices of the presets that choose (the first value is the default): the
+#: records' candidates, cut to the same number of candidate sets for every method
+CANDIDATES = _equal_candidates({m.name: {k: list(v) for k, v in m.reproduce.candidates.items()}
+                                for m in reproduced_methods() if m.reproduce.candidates})
+
+#: the presets' shared settings, as TOML-like data over the defaults (the methods' parts: :func:`_preset`).
+#: train.images, the budget of every training run (images seen), is the same for every method: smoke
+#: 6 steps of 4; cpu 800 steps of 4 (5 epochs of simple's 640 train-val images, 2.4 of hard's 1,360);
+#: gpu 8,000 steps of 8 (19 / 9.2 epochs); full 280,000 steps of 8 (100 epochs of simple's 22,400).
 PRESET_SETTINGS: dict[str, dict] = {
     "smoke": {"data": {"scenes": ["single/juice_cup_340", "single/handle_cup_280", "multi/08", "multi/01"],
                        "steps": 6, "step_deg": 5.0, "n_arms": 4, "width": 80, "height": 60},
-              "train": {"image_size": [32, 48], "batch_size": 4, "lr": 2e-3, "max_steps": 6},
+              "train": {"image_size": [32, 48], "batch_size": 4, "lr": 2e-3, "images": 24, "seeds": [0]},
               "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
               "profile": {"height": 120, "width": 160, "repeats": 1}},
     "cpu": {"data": {"scenes": list(ALL_SCENES), "steps": 12, "step_deg": 30.0, "n_arms": 4, "width": 160,
                      "height": 120},
-            "train": {"image_size": [96, 128], "batch_size": 4, "lr": 1e-3},
+            "train": {"image_size": [96, 128], "batch_size": 4, "lr": 1e-3, "images": 3200, "seeds": [0, 1]},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
             "profile": {"height": 240, "width": 320, "repeats": 3},
-            "select": {"epochs": "best", "every": 2, "max_images": 200}},
+            "select": {"epochs": "best", "every": 1, "max_images": 200}},
     "gpu": {"data": {"scenes": list(ALL_SCENES), "steps": 60, "step_deg": 6.0, "n_arms": 4, "width": 640,
                      "height": 480},
-            "train": {"image_size": [240, 320], "batch_size": 8, "lr": 1e-3, "num_workers": 8},
+            "train": {"image_size": [240, 320], "batch_size": 8, "lr": 1e-3, "num_workers": 8, "images": 64000,
+                      "seeds": [0, 1, 2]},
             "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
             "profile": {"height": 480, "width": 640, "repeats": 20},
-            "select": {"epochs": "best", "every": 5, "max_images": 300}},
+            "select": {"epochs": "best", "every": 4, "max_images": 300}},
     "full": {"data": {"scenes": list(ALL_SCENES), "steps": 400, "step_deg": 0.9, "n_arms": 4, "width": 640,
                       "height": 480},
-             "train": {"image_size": [480, 640], "batch_size": 8, "lr": 1e-3, "num_workers": 8},
+             "train": {"image_size": [480, 640], "batch_size": 8, "lr": 1e-3, "num_workers": 8, "images": 2240000,
+                       "seeds": [0, 1, 2]},
              "ablations": {"fuse_stages": [1, 2, 3, 4, 5], "segmentation": True},
              "profile": {"height": 480, "width": 640, "repeats": 50},
              "select": {"epochs": "best", "every": 10, "max_images": 1000}},
@@ -239,11 +349,10 @@ PRESET_SETTINGS: dict[str, dict] = {
 
 
 def _preset(name: str) -> dict:
-    """A preset: its shared settings, each method's epochs and options for it (its registry record),
-    and, in a preset that chooses, every method's candidates."""
+    """A preset: its shared settings, each method's options for it (its registry record), and, in
+    a preset that chooses, every method's candidates (:data:`CANDIDATES`)."""
     ms = reproduced_methods()
     out = copy.deepcopy(PRESET_SETTINGS[name])
-    out["epochs"] = {m.name: int(m.reproduce.epochs.get(name, 1)) for m in ms}
     options = {m.name: dict(m.reproduce.preset_options[name]) for m in ms if name in m.reproduce.preset_options}
     if options:
         out["method_options"] = options
@@ -298,7 +407,43 @@ def make_config(preset: str | None = None, config: str | Path | dict | None = No
             raise TdofError(f"method_options.{m}: {e}", src or None) from None
     cfg.method_options = json.loads(json.dumps(options))
     cfg.candidates = check_candidates(candidates, src)
+    check_fair(cfg, src)
     return cfg
+
+
+#: privileged inputs, by option and value: derived from the ground truth, never a submission
+PRIVILEGED = {"depth_mode": {"restored": "restored depth (derived from the ground truth)"},
+              "masks": {"gt": "ground-truth masks"},
+              "boxes": {"gt": "ground-truth boxes"}}
+
+
+def privileged_inputs(options: dict) -> list[str]:
+    """The privileged inputs a row's options give it (:data:`PRIVILEGED`): restored depth,
+    ground-truth masks or boxes."""
+    return [PRIVILEGED[k][v] for k, v in options.items() if isinstance(v, str) and v in PRIVILEGED.get(k, {})]
+
+
+def check_fair(cfg: ReproduceConfig, src: str = "") -> None:
+    """Refuse what would make the compared rows unequal: a privileged input for any compared row
+    (through [method_options.<method>]; one line naming the row and the input), or candidate
+    lists that give the compared rows different numbers of candidate sets chosen on validation.
+    (The budget is one number, train.images, for every row; :class:`ReproduceConfig` checks it
+    divides into whole steps of each method's batch.)"""
+    where = src or None
+    sizes = {}
+    for m, own in main_rows(cfg.methods, cfg.ablations.voting_3d):
+        row = LABELS[m] if not own else LABELS["hff6dof-3d"]
+        bad = privileged_inputs(cfg.method_options.get(m, {}))
+        if bad:
+            key = next(k for k, v in cfg.method_options[m].items() if k in PRIVILEGED and v in PRIVILEGED[k])
+            raise TdofError(f"method_options.{m}.{key}: the compared row '{row}' would predict with {bad[0]}, a "
+                            "privileged input: refused (an oracle belongs only in a row marked as such, e.g. "
+                            "ablations.segmentation_masks = \"gt\")", where)
+        sizes[row] = grid_size(candidate_table(cfg.candidates, m, own))
+    if len(set(sizes.values())) > 1:
+        shown = ", ".join(f"{r} {n}" for r, n in sizes.items())
+        raise TdofError(f"the compared rows get different numbers of candidate sets chosen on validation ({shown}): "
+                        "give every method's [candidates.<method>] the same number of sets, or none to any", where)
 
 
 def check_candidates(candidates: Any, src: str = "") -> dict:

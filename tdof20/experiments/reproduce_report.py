@@ -11,30 +11,38 @@ import json
 from pathlib import Path
 
 from tdof20.errors import TdofError
-from tdof20.experiments.entries import Entry
-from tdof20.experiments.reproduce_config import LABELS, ReproduceConfig
-from tdof20.experiments.reproduce_plan import choice_source, planned_predictions
+from tdof20.experiments.entries import Entry, over_seeds
+from tdof20.experiments.reproduce_config import ReproduceConfig
+from tdof20.experiments.reproduce_plan import candidate_grid, choice_source, plan, planned_predictions
 from tdof20.experiments.tables import models_info_objects
 from tdof20.formats.io import read_json
 from tdof20.scoring.scoring import DatasetView
 
 
 def table_entries(out: Path, cfg: ReproduceConfig, state):
-    """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off); the HFF6DoF
-    row chosen on validation to stand for HFF6DoF in the agreement claims carries extra["primary"]."""
+    """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off), one entry
+    per row with its seeds' scores combined (:func:`over_seeds`: the mean and the spread). HFF6DoF's
+    main row (bearing + PnP, the method's default) carries extra["primary"]: it stands for HFF6DoF
+    in the agreement claims, fixed before any result (no choice between separately trained rows);
+    its 3D-voting row is a row of its own. A row marked oracle (ground-truth masks) carries
+    oracle_masks and stays outside every claim."""
     entries, fusion, seg_on, seg_off = [], {}, None, None
+    rows: dict[str, list[dict]] = {}
     for p in planned_predictions(cfg):
-        f = out / "scores" / f"{p['name']}.json"
-        if not f.exists():
+        rows.setdefault(p["row"], []).append(p)
+    for row, preds in rows.items():
+        got = [(p, out / "scores" / f"{p['name']}.json") for p in preds]
+        got = [(p, f) for p, f in got if f.exists()]
+        if not got:
             continue
-        s = read_json(f)
-        form = f"choose/formulation/{p['split']}"
-        primary = state.done(form) and state.get(form).get("primary") == p["name"]
-        e = Entry(p["label"], p["method"], p["split"], s, oracle_masks=bool(s.get("oracle_masks")),
+        p = got[0][0]
+        s = over_seeds([read_json(f) for _, f in got], [q["seed"] for q, _ in got])
+        primary = p["role"] == "main" and p["method"] == "hff6dof" and not p["options"]
+        e = Entry(p["label"], p["method"], p["split"], s, oracle_masks=bool(s.get("oracle_masks")) or p["oracle"],
                   note=s.get("note", ""), extra={"primary": True} if primary else {})
         if p["role"] == "main":
             entries.append(e)
-            if p["method"] == "hff6dof" and p["split"] == "hard" and p["name"] == "hff6dof_hard":
+            if row == "hff6dof_hard":
                 if 3 in cfg.ablations.fuse_stages:
                     fusion[3] = e
                 seg_on = e
@@ -61,8 +69,7 @@ def _opts_text(options: dict) -> str:
 
 
 def choices(cfg: ReproduceConfig, state) -> list[dict]:
-    """What was chosen on validation, per result (and the HFF6DoF formulation per protocol), with
-    the validation figures behind each choice: [{"result", "choice", "chosen", "validation"}]."""
+    """What was chosen on validation, per result, with the validation figures behind each choice: [{"result", "choice", "chosen", "validation"}]."""
     rows = []
     for p in planned_predictions(cfg):
         t = f"train/{p['run']}"
@@ -82,14 +89,6 @@ def choices(cfg: ReproduceConfig, state) -> list[dict]:
                          "chosen": _opts_text({k: v for k, v in j["options"].items() if k not in fixed}),
                          "validation": "; ".join(_opts_text({k: v for k, v in f["options"].items() if k not in fixed})
                                                  + f": {_pcts(f)}" for f in j["validation"])})
-    for split in cfg.protocols:
-        c = f"choose/formulation/{split}"
-        if state.done(c):
-            j = state.get(c)
-            rows.append({"result": f"HFF6DoF · {split}", "choice": "pose recovery standing for HFF6DoF "
-                         "(agreement claims)", "chosen": LABELS[j["primary"].split("_")[0]],
-                         "validation": "; ".join(f"{LABELS[n.split('_')[0]]}: {_pcts(f)}"
-                                                 for n, f in j["validation"].items())})
     return rows
 
 
@@ -107,6 +106,10 @@ def _given_source(root: Path) -> str:
     return f"the given dataset, {src}: {counts}" if src else f"the given dataset: {counts}"
 
 
+def _n_sets(cfg: ReproduceConfig) -> int:
+    return max((len(candidate_grid(cfg, p)) for p in planned_predictions(cfg) if p["role"] == "main"), default=1)
+
+
 def tables_header(cfg: ReproduceConfig, root: Path, state) -> list[str]:
     d = cfg.data
     src = (_given_source(root) if cfg.dataset else
@@ -114,17 +117,30 @@ def tables_header(cfg: ReproduceConfig, root: Path, state) -> list[str]:
            f"of {d.step_deg:g} deg at {d.width}x{d.height}, oracle labels")
     secs = sum(j.get("seconds", 0.0) for j in state.data["jobs"].values())
     cpu = sum(j.get("cpu_seconds", 0.0) for j in state.data["jobs"].values())
-    ep = ", ".join(f"{m} {getattr(cfg.epochs, m)}" for m in cfg.methods)
+    pl = plan(cfg)
+    steps = ", ".join(dict.fromkeys(f"{r['method']} {r['steps']} x {r['batch']}" for r in pl["runs"]
+                                    if r["row"] == f"{r['method']}_{r['split']}"))
+    passes = ", ".join(f"{p} {cfg.train.images / max(1, n['train-val']):.1f}" for p, n in pl["parts"].items())
+    sched = f"{steps}; epochs over the train-val images: {passes}"
+    seg = ""
+    if cfg.ablations.segmentation:
+        seg = (f" The segmentation ablation's row without the head: the segmentation network "
+               f"({cfg.segnet_images()} images) + HFF6DoF without its head ({cfg.train.images - cfg.segnet_images()})"
+               if cfg.ablations.segmentation_masks == "segnet" else
+               " The segmentation ablation's row without the head predicts with ground-truth masks: an oracle row, "
+               "outside every claim") + "."
     sel = cfg.select
     return [f"# tdof20 reproduce — preset {cfg.preset}", "",
             f"Dataset: {src} ({root}). Training: on each protocol's train part minus its validation part, "
-            f"{cfg.train.image_size[0]}x{cfg.train.image_size[1]}, batch "
-            f"{cfg.train.batch_size}, epochs {ep}" + (f", at most {cfg.train.max_steps} optimiser step(s) per run"
-                                                     if cfg.train.max_steps else "") + f"; device {cfg.device}.",
+            f"{cfg.train.image_size[0]}x{cfg.train.image_size[1]}; every run the same budget, "
+            f"{cfg.train.images} images seen (optimiser steps x batch: {sched}); "
+            f"{len(cfg.train.seeds)} seed(s) per row ({', '.join(map(str, cfg.train.seeds))}): each value is the mean "
+            "over the seeds ± half their range; device " + f"{cfg.device}." + seg,
             f"Choices on the validation part only (the test part is predicted once, with what was chosen): "
             f"epochs {'the validation-best' if sel.epochs == 'best' else 'the last'}"
             + (f" (every {sel.every} epochs)" if sel.epochs == "best" and sel.every > 1 else "")
             + f"; candidates {json.dumps(cfg.candidates) if cfg.candidates else 'none'}"
+            + f" ({_n_sets(cfg)} candidate set(s) per compared row)"
             + (f"; at most {sel.max_images} validation images per protocol" if sel.max_images else "") + ".",
             f"Work so far: {secs:.0f} s of wall time, {cpu:.0f} s of CPU, over {len(state.data['jobs'])} jobs "
             "(DIR/reproduce.json)."]

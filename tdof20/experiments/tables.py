@@ -37,8 +37,9 @@ from typing import Any
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.experiments.agreement import CLAIMS, PAPER, agreement, agreement_csv, agreement_markdown  # noqa: F401
-from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, pct, signed
+from tdof20.experiments.agreement import (CLAIMS, PAPER, TOLERANCE, agreement, agreement_csv,  # noqa: F401
+                                          agreement_markdown)
+from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, over_seeds, pct, signed  # noqa: F401
 from tdof20.formats.io import atomic_write_bytes, write_json
 from tdof20.objects import get_object
 from tdof20.scoring.report import accuracy_curve, counted
@@ -48,8 +49,15 @@ KEY_TITLES = {"add_s": "ADD(S)", "proj2d": "2D projection"}
 TABLE_TITLES = {
     "add_s": "Table 1 — ADD(S) accuracy (%): mean model-point distance < 10 % of the diameter (closest point "
              "for symmetric objects)",
-    "proj2d": "Table 2 — 2D projection accuracy (%): mean reprojection distance < 5 px",
+    "proj2d": "Table 2 — 2D projection accuracy (%): mean reprojection distance < {px} px",
 }
+
+
+def proj_px_of(entries: Sequence[Entry]) -> str:
+    """The 2D projection threshold the entries' scores name ("proj_px", in pixels), "5" (the
+    paper's) where none names one; several different ones joined with " / "."""
+    px = list(dict.fromkeys(e.scores.get("proj_px") for e in entries if e.scores.get("proj_px") is not None))
+    return " / ".join(f"{float(v):g}" for v in px) or "5"
 
 
 # --------------------------------------------------------------------------------------------
@@ -111,10 +119,11 @@ def columns(entries: Sequence[Entry]) -> list[tuple[str, str]]:
 def protocol_table(entries: Sequence[Entry], key: str = "add_s",
                    objects: Mapping[int, tuple[str, bool]] | None = None) -> dict:
     """Table 1 (``key`` 'add_s') or 2 ('proj2d') as a plain dict:
-    {"key", "title", "columns": [{"label", "split", "method", "oracle_masks", "present"}],
-    "rows": [{"obj_id", "name", "asymmetric", "values", "bold"}] (objects by id, then the mean row
-    with obj_id None), "notes"}. Values are fractions or None (no result / object not tested);
-    bold = the best per row within each protocol, among results without oracle masks."""
+    {"key", "title", "columns": [{"label", "split", "method", "oracle_masks", "present", "seeds",
+    "proj_px"}], "rows": [{"obj_id", "name", "asymmetric", "values", "spreads", "bold"}] (objects by
+    id, then the mean row with obj_id None), "notes"}. Values are fractions or None (no result /
+    object not tested), the mean over the row's seeds; spreads their half-range (None with one
+    seed); bold = the best mean per row within each protocol, among results without oracle masks."""
     if key not in KEY_TITLES:
         raise TdofError(f"unknown table key '{key}' (known: {', '.join(KEY_TITLES)})")
     by = {}
@@ -130,40 +139,56 @@ def protocol_table(entries: Sequence[Entry], key: str = "add_s",
     for lab, s in cols:
         e = by.get((lab, s))
         col_info.append({"label": lab, "split": s, "method": None if e is None else e.method,
-                         "oracle_masks": bool(e is not None and e.oracle_masks), "present": e is not None})
+                         "oracle_masks": bool(e is not None and e.oracle_masks), "present": e is not None,
+                         "seeds": None if e is None else len(e.seeds),
+                         "proj_px": None if e is None else e.scores.get("proj_px")})
 
     def row(obj_id):
         vals = [None if (lab, s) not in by else by[(lab, s)].value(key, obj_id) for lab, s in cols]
+        spreads = [None if (lab, s) not in by else by[(lab, s)].spread(key, obj_id) for lab, s in cols]
         bold = [False] * len(cols)
         for s in SPLITS:
             idx = [i for i, (_, sp) in enumerate(cols) if sp == s]
             flags = _best([vals[i] for i in idx], [not col_info[i]["oracle_masks"] for i in idx])
             for i, f in zip(idx, flags):
                 bold[i] = f
-        return vals, bold
+        return vals, spreads, bold
 
     rows = []
     for o in ids:
-        vals, bold = row(o)
+        vals, spreads, bold = row(o)
         name, asym = objs.get(o, (f"obj_{o:06d}", False))
-        rows.append({"obj_id": o, "name": name, "asymmetric": bool(asym), "values": vals, "bold": bold})
-    vals, bold = row(None)
+        rows.append({"obj_id": o, "name": name, "asymmetric": bool(asym), "values": vals, "spreads": spreads,
+                     "bold": bold})
+    vals, spreads, bold = row(None)
     n_obj = max((int(e.scores["mean"].get("n", 0)) for e in entries), default=0)
     rows.append({"obj_id": None, "name": f"mean ({counted(n_obj, 'object')})", "asymmetric": False,
-                 "values": vals, "bold": bold})
+                 "values": vals, "spreads": spreads, "bold": bold})
     notes = ["Bold object names (marked *) are asymmetric: their ADD(S) is the stricter ADD; the others are "
              "symmetric (ADD-S). Bold values: the best of each row within each protocol.",
              f"{MISSING}: no result for that method and protocol, or the object is not in its test part."]
+    n_seeds = sorted({c["seeds"] for c in col_info if c["seeds"]})
+    if n_seeds and n_seeds[-1] > 1:
+        notes.append(f"Each value: the mean over the row's {' or '.join(map(str, n_seeds))} seeds ± half their range "
+                     "(max − min over 2); a difference smaller than the two rows' half-ranges together is not one "
+                     "the seeds support.")
+    if key == "proj2d":
+        px = proj_px_of(entries)
+        notes.append(f"2D projection threshold: {px} px" + (" (the paper's 5 px at 640 pixels wide, scaled with the "
+                                                            "image width)" if any(c["proj_px"] is not None
+                                                                                  for c in col_info) else "") + ".")
     if any(c["oracle_masks"] for c in col_info):
         notes.append(f"({ORACLE}): ground-truth masks picked each object's pixels — an oracle segmentation, not a "
-                     "valid submission; such results never take the bold.")
+                     "valid submission; such results never take the bold and stay outside every claim.")
     notes += [f"{e.title}: {e.note}" for e in entries if e.note]
-    return {"key": key, "title": TABLE_TITLES[key], "columns": col_info, "rows": rows, "notes": notes}
+    title = TABLE_TITLES[key].format(px=proj_px_of(entries)) if key == "proj2d" else TABLE_TITLES[key]
+    return {"key": key, "title": title, "columns": col_info, "rows": rows, "notes": notes}
 
 
-def _md_cell(v, bold: bool) -> str:
+def _md_cell(v, bold: bool, spread: float | None = None) -> str:
     t = pct(v)
-    return f"**{t}**" if bold and v is not None else t
+    t = f"**{t}**" if bold and v is not None else t
+    return t + (f" ± {100 * spread:.2f}" if spread is not None and v is not None else "")
 
 
 def _col_title(c: Mapping) -> str:
@@ -177,7 +202,9 @@ def protocol_markdown(table: Mapping) -> str:
            "| --- |" + " ---: |" * len(cols)]
     for r in table["rows"]:
         name = f"**{r['name']}** \\*" if r["asymmetric"] else r["name"]
-        out.append(f"| {name} | " + " | ".join(_md_cell(v, b) for v, b in zip(r["values"], r["bold"])) + " |")
+        sp = r.get("spreads") or [None] * len(r["values"])
+        out.append(f"| {name} | " + " | ".join(_md_cell(v, b, d) for v, b, d in zip(r["values"], r["bold"], sp))
+                   + " |")
     return "\n".join(out + [""] + table["notes"])
 
 
@@ -186,13 +213,21 @@ def _num(v: float | None, scale: float = 100.0, digits: int = 4) -> float | None
 
 
 def protocol_csv(table: Mapping) -> str:
-    """CSV: obj_id, object, asymmetric, one column per method/protocol (percent; empty = no result),
-    the mean row last (obj_id empty)."""
+    """CSV: obj_id, object, asymmetric, one column per method/protocol (percent, the mean over its
+    seeds; empty = no result), and where any row has several seeds one "± half-range" column after
+    each; the mean row last (obj_id empty)."""
     cols = table["columns"]
-    head = ["obj_id", "object", "asymmetric"] + [
-        f"{c['label']}/{c['split']}" + (f" ({ORACLE})" if c["oracle_masks"] else "") for c in cols]
-    rows = [head] + [[r["obj_id"], r["name"], int(r["asymmetric"])] + [_num(v) for v in r["values"]]
-                     for r in table["rows"]]
+    spread = any(d is not None for r in table["rows"] for d in (r.get("spreads") or []))
+    head = ["obj_id", "object", "asymmetric"]
+    for c in cols:
+        t = f"{c['label']}/{c['split']}" + (f" ({ORACLE})" if c["oracle_masks"] else "")
+        head += [t, f"{t} ±"] if spread else [t]
+    rows = [head]
+    for r in table["rows"]:
+        vals = []
+        for v, d in zip(r["values"], r.get("spreads") or [None] * len(r["values"])):
+            vals += [_num(v), _num(d)] if spread else [_num(v)]
+        rows.append([r["obj_id"], r["name"], int(r["asymmetric"])] + vals)
     return csv_text(rows)
 
 
@@ -277,7 +312,9 @@ def _ablation_rows(items: Sequence[tuple[str, Entry | None]]) -> list[dict]:
                      "oracle_masks": bool(e is not None and e.oracle_masks),
                      "n": None if e is None else e.scores["mean"].get("n"),
                      "add_s": None if e is None else e.value("add_s"),
-                     "proj2d": None if e is None else e.value("proj2d")})
+                     "proj2d": None if e is None else e.value("proj2d"),
+                     "add_s_spread": None if e is None else e.spread("add_s"),
+                     "proj2d_spread": None if e is None else e.spread("proj2d")})
     for k in ("add_s", "proj2d"):
         flags = _best([r[k] for r in rows], [not r["oracle_masks"] for r in rows])
         for r, f in zip(rows, flags):
@@ -304,10 +341,13 @@ def fusion_table(by_stages: Mapping[int, Entry]) -> dict:
 
 
 def segmentation_table(on: Entry | None, off: Entry | None) -> dict:
-    """The segmentation-module ablation: with the head, without it, and the gain (on - off)."""
+    """The segmentation-module ablation: with the head, without it (masks of a separately trained
+    segmentation network, or ground-truth masks: an oracle row), and the gain (on - off)."""
     off_name = "without segmentation head"
     if off is not None and off.oracle_masks:
         off_name += f" ({ORACLE})"
+    elif off is not None:
+        off_name += ", masks of a separately trained segmentation network"
     rows = _ablation_rows([("with segmentation head", on), (off_name, off)])
     gain = {k: (None if on is None or off is None or on.value(k) is None or off.value(k) is None
                 else on.value(k) - off.value(k)) for k in ("add_s", "proj2d")}
@@ -315,7 +355,14 @@ def segmentation_table(on: Entry | None, off: Entry | None) -> dict:
     if off is not None and off.oracle_masks:
         notes.append(f"Without the head, ground-truth masks ({ORACLE}) pick each object's pixels: the row without "
                      "the head is given a perfect segmentation, so the gain measured is a lower bound of what the "
-                     "head brings over a real alternative.")
+                     "head brings over a real alternative; an oracle row, outside every claim.")
+    elif off is not None:
+        b = off.scores.get("budget") or []
+        seg = [x.get("segnet_images_seen") for x in b if isinstance(x, Mapping)]
+        notes.append("Without the head, a segmentation network trained separately on the same split picks each "
+                     "object's pixels (the paper's ablation); its training counts in the row's budget"
+                     + (f" ({seg[0]} of the row's images seen)" if seg and seg[0] else "") + ", so both rows "
+                     "see as many images.")
     return {"title": "Ablation — segmentation module on TDoF20-hard (HFF6DoF)", "rows": rows, "gain": gain,
             "notes": notes}
 
@@ -325,8 +372,8 @@ def ablation_markdown(table: Mapping) -> str:
            "| --- | ---: | ---: | ---: |"]
     for r in table["rows"]:
         name = r["setting"] + (f" ({ORACLE})" if r["oracle_masks"] and ORACLE not in r["setting"] else "")
-        out.append(f"| {name} | {_f(r['n'], 'd')} | {_md_cell(r['add_s'], r['add_s_bold'])} | "
-                   f"{_md_cell(r['proj2d'], r['proj2d_bold'])} |")
+        out.append(f"| {name} | {_f(r['n'], 'd')} | {_md_cell(r['add_s'], r['add_s_bold'], r.get('add_s_spread'))} | "
+                   f"{_md_cell(r['proj2d'], r['proj2d_bold'], r.get('proj2d_spread'))} |")
     if "gain" in table:
         g = table["gain"]
         out.append(f"| gain of the head | | {signed(g['add_s'])} | {signed(g['proj2d'])} |")
@@ -334,11 +381,11 @@ def ablation_markdown(table: Mapping) -> str:
 
 
 def ablation_csv(table: Mapping) -> str:
-    rows = [["setting", "oracle_masks", "n_objects", "add_s", "proj2d"]]
-    rows += [[r["setting"], int(r["oracle_masks"]), r["n"], _num(r["add_s"]), _num(r["proj2d"])]
-             for r in table["rows"]]
+    rows = [["setting", "oracle_masks", "n_objects", "add_s", "proj2d", "add_s_spread", "proj2d_spread"]]
+    rows += [[r["setting"], int(r["oracle_masks"]), r["n"], _num(r["add_s"]), _num(r["proj2d"]),
+              _num(r.get("add_s_spread")), _num(r.get("proj2d_spread"))] for r in table["rows"]]
     if "gain" in table:
-        rows.append(["gain", "", "", _num(table["gain"]["add_s"]), _num(table["gain"]["proj2d"])])
+        rows.append(["gain", "", "", _num(table["gain"]["add_s"]), _num(table["gain"]["proj2d"]), "", ""])
     return csv_text(rows)
 
 
@@ -383,8 +430,9 @@ def plot_accuracy(entries: Sequence[Entry], path: str | Path,
     curves = all("curves" in e.scores and e.scores["curves"] for e in entries)
     if curves:
         fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=100)
+        px = entries[0].scores.get("proj_px")
         for ax, key, xl, mark in ((axes[0], "add_s", "threshold (% of the object diameter)", 10.0),
-                                  (axes[1], "proj2d", "threshold (px)", 5.0)):
+                                  (axes[1], "proj2d", "threshold (px)", 5.0 if px is None else float(px))):
             for e in entries:
                 c = e.scores["curves"].get(key)
                 if c:
@@ -520,7 +568,7 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
     return paths
 
 
-__all__ = ["CLAIMS", "Entry", "MISSING", "ORACLE", "PAPER", "TOLERANCE", "ablation_csv", "ablation_markdown",
+__all__ = ["CLAIMS", "Entry", "over_seeds", "proj_px_of", "MISSING", "ORACLE", "PAPER", "TOLERANCE", "ablation_csv", "ablation_markdown",
            "agreement", "agreement_csv", "agreement_markdown", "catalog_objects", "choices_csv", "choices_markdown",
            "columns", "curves_from_evaluation",
            "efficiency_csv", "efficiency_markdown", "efficiency_table", "fusion_table", "models_info_objects",

@@ -18,7 +18,13 @@ The optional members have defaults here: :meth:`example_batch` (network inputs w
 for profiling), :meth:`config_from_run` (runs recorded before the interface) and the hooks the
 shared training and prediction loops ask instead of testing a method's name:
 :attr:`ddp_find_unused_parameters`, :attr:`labels_are_classes`, :meth:`missing_run_keys`,
-:meth:`run_record`, :meth:`mask_source`, :meth:`needs_labels` and :meth:`prediction_summary`.
+:meth:`run_record`, :meth:`mask_source`, :meth:`needs_labels`, :meth:`prediction_summary` and
+:meth:`predict_masks`.
+
+Not every registered method estimates poses: a record's ``produces`` (:mod:`tdof20.methods.registry`)
+says 'poses' (a compared method: reproduce's rows, ``tdof20 predict``) or 'masks' (a segmentation
+network trained by the same loop, whose :meth:`predict_masks` gives a pose method its object pixels
+when that method predicts with ``masks = 'segnet'``: :mod:`tdof20.methods.segnet`).
 
 torch-free: the type hints name torch only for checkers.
 """
@@ -30,6 +36,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from tdof20.errors import TdofError
+
 if TYPE_CHECKING:  # pragma: no cover - type hints only
     import torch
 
@@ -37,6 +45,14 @@ if TYPE_CHECKING:  # pragma: no cover - type hints only
 
 #: a prediction's rows: (index in the batch, obj_id, score, R (3,3), t (3,) mm)
 PoseRows = list[tuple[int, int, float, Any, Any]]
+
+#: what a registered method gives: poses (a compared pose estimation method) or masks (a segmentation
+#: network that only serves a pose method's ``masks = 'segnet'``)
+PRODUCES = ("poses", "masks")
+#: where a prediction takes the object pixels from (:meth:`PoseMethod.mask_source`): the method's own
+#: network, a separately trained segmentation network's run (``seg_run``), or the dataset's visible
+#: masks (an oracle: never a compared row)
+MASK_SOURCES = ("network", "segnet", "gt")
 
 #: options the prediction summary (``<stem>_info.json``) has always listed where a method's config has them
 SUMMARY_OPTIONS = ("voting", "min_pixels", "max_points", "n_hyp", "inlier_cos")
@@ -64,7 +80,6 @@ class ReproduceSettings:
     label: the method's row in the tables; variant_labels: rows of the method's variants, by
     suffix ({"3d": ...} labels the row ``<name>-3d``); rank: where its rows stand (ascending, ties in
     registration order: the rivals 0, the paper's own method after them);
-    epochs: training epochs per preset ({"smoke": 1, "cpu": 8, ...}; a preset not listed: 1);
     preset_options: the method's config options per preset (``[method_options.<name>]``);
     choice_options: the prediction-time options ``[candidates.<name>]`` may list (options that
     change no weight); candidates: the values the presets that choose on validation try (the
@@ -73,7 +88,6 @@ class ReproduceSettings:
     """
 
     label: str
-    epochs: Mapping[str, int] = field(default_factory=dict)
     choice_options: tuple[str, ...] = ()
     candidates: Mapping[str, list] = field(default_factory=dict)
     preset_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
@@ -141,10 +155,23 @@ class PoseMethod(ABC):
         return {}
 
     def mask_source(self, cfg, net) -> str:
-        """Where prediction takes the object pixels from: 'network' (its own segmentation) or 'gt'
-        (the dataset's visible masks, an oracle); a TdofError when the config asks for what the
+        """Where prediction takes the object pixels from (one of :data:`MASK_SOURCES`): 'network' (its
+        own segmentation), 'segnet' (a separately trained segmentation network's run, the config's
+        ``seg_run``: the shared prediction loop runs it on the same images and puts its classes in
+        the batch's ``label``, in the method's label convention, see :attr:`labels_are_classes`) or
+        'gt' (the dataset's visible masks, an oracle); a TdofError when the config asks for what the
         network cannot give."""
         return "network"
+
+    def seg_run(self, cfg) -> str:
+        """The segmentation run a prediction with mask source 'segnet' takes its masks from (the
+        config's ``seg_run``; "" when it has none)."""
+        return str(getattr(cfg, "seg_run", "") or "")
+
+    def predict_masks(self, net, batch: Mapping, cfg, meta: MethodMeta):
+        """(classes (B,H,W) int64 class indices 0..n of ``meta``, confidence (B,H,W) float) of a batch:
+        what a method that produces masks gives (its record's ``produces = 'masks'``)."""
+        raise TdofError(f"{type(self).__name__} produces poses, not masks")
 
     def needs_labels(self, cfg, net) -> bool:
         """Whether prediction reads the dataset's labels (ground-truth masks)."""
@@ -156,4 +183,5 @@ class PoseMethod(ABC):
         return {k: getattr(cfg, k) for k in SUMMARY_OPTIONS if hasattr(cfg, k)}
 
 
-__all__ = ["PoseMethod", "PoseRows", "ReproduceSettings", "SUMMARY_OPTIONS", "forward_batch", "forward_rgb"]
+__all__ = ["MASK_SOURCES", "PRODUCES", "PoseMethod", "PoseRows", "ReproduceSettings", "SUMMARY_OPTIONS",
+           "forward_batch", "forward_rgb"]

@@ -13,7 +13,8 @@ Three networks in one module, as the original runs them:
 
 - ``seg``: the segmentation network that gives the crops (the original takes PoseCNN's labels on
   YCB and trains its own "vanilla_segmentation" net): a PSPNet-ResNet18 with ``n_classes``
-  outputs, cross-entropy. Trained by the same :func:`loss` with ``stage="seg"`` — one training
+  outputs, cross-entropy — :class:`tdof20.methods.segnet.SegNet`, the module the registered
+  'segnet' (masks for HFF6DoF without its head) trains alone. Trained by the same :func:`loss` with ``stage="seg"`` — one training
   command with ``--config`` holding ``stage = "seg"``; ``stage = "joint"`` trains all three at once.
 - ``estimator`` (the original's PoseNet): PSPNet-ResNet18 embedding (32-d) of the crop, gathered at
   the N chosen pixels; PointNet on the N points (3 -> 64 -> 128 with 32 -> 64 -> 128 on the
@@ -51,6 +52,7 @@ from tdof20.methods.data import DEFAULT_DEPTH_MODE, backproject, check_depth_mod
 from tdof20.methods.fitting import quaternion_to_matrix
 from tdof20.methods.pspnet import PSPNet
 from tdof20.methods.randla import knn
+from tdof20.methods.segnet import SegNet
 
 STAGES = ("seg", "pose", "refine", "joint")
 #: the original's crop sizes (get_bbox's border_list at 480x640), scaled to the image
@@ -197,20 +199,6 @@ class PoseRefineNet(nn.Module):
         r = self.conv3_r(F.relu(self.conv2_r(F.relu(self.conv1_r(g)))))
         t = self.conv3_t(F.relu(self.conv2_t(F.relu(self.conv1_t(g)))))
         return _pick_class(r, cls, 4), _pick_class(t, cls, 3)
-
-
-class SegNet(nn.Module):
-    """The segmentation network that gives the crops: PSPNet-ResNet18 with ``n_classes`` logits."""
-
-    def __init__(self, n_classes: int, backbone_weights: str = ""):
-        super().__init__()
-
-        self.net = PSPNet(backbone="resnet18", feat_dim=int(n_classes), log_softmax=False)
-        if backbone_weights:
-            self.net.load_backbone_weights(backbone_weights)
-
-    def forward(self, rgb: torch.Tensor) -> torch.Tensor:
-        return self.net(rgb)
 
 
 class DenseFusion(nn.Module):

@@ -35,7 +35,7 @@ from tdof20.methods.hff6dof_data import HFFTransform, check_vector_origin
 from tdof20.methods.hff6dof_pose import default_min_pixels, recover_poses
 from tdof20.methods.losses import hff_loss
 
-MASKS = ("auto", "network", "gt")
+MASKS = ("auto", "network", "segnet", "gt")
 VOTINGS = ("bearing", "3d")
 
 
@@ -44,7 +44,8 @@ class HFF6DoFConfig:
     """HFF6DoF's options (plain types, TOML-settable); every default works.
 
     Network: fuse_stages (1..5: the last N encoder stages fused; the paper's 3), seg_head (the
-    segmentation head; off = the paper's ablation, prediction then needs ground-truth masks),
+    segmentation head; off = the paper's ablation, prediction then takes its masks from a separately
+    trained segmentation network, masks 'segnet'),
     decoder_channels (6 widths at strides 1..32) and head_channels (sized to the paper's 56.82 M),
     backbone_weights (a torchvision resnet34 .pth for both encoders; "" = random init).
     Input: depth_mode 'raw' | 'filled' (the transparent sensor's depth; 'restored' is privileged,
@@ -53,7 +54,10 @@ class HFF6DoFConfig:
     network sees; pixels without input depth get no vector loss and cast no 3D vote: the paper's
     3D voting + least squares made to work on glass depth, docs/hff6dof.md). Loss: w_vec (weight of the vector field's L1; the paper's 2).
     Prediction: masks ('auto' = the network's segmentation when it has the head, else 'gt';
-    'network'; 'gt' = the dataset's visible masks, an oracle), voting ('bearing' | '3d'),
+    'network'; 'segnet' = the masks of the segmentation network trained in the run folder
+    ``seg_run`` (``tdof20 train segnet``, on the same data and image size: the paper's ablation
+    without the head); 'gt' = the dataset's visible masks, an oracle: never a compared row),
+    seg_run (that run folder; read only with masks 'segnet'), voting ('bearing' | '3d'),
     min_pixels (smallest segment; 0 = 0.05 % of the image, at least 10), max_points (voting pixels
     per object), n_hyp, inlier_cos, bearing_tol (RANSAC), seed (the voting's generator).
     """
@@ -67,6 +71,7 @@ class HFF6DoFConfig:
     vector_origin: str = "restored"
     w_vec: float = 2.0
     masks: str = "auto"
+    seg_run: str = ""
     voting: str = "bearing"
     min_pixels: int = 0
     max_points: int = 2000
@@ -85,6 +90,11 @@ class HFF6DoFConfig:
         check_vector_origin(self.vector_origin)
         if self.masks not in MASKS:
             raise TdofError(f"hff6dof masks must be one of {', '.join(MASKS)}, got '{self.masks}'")
+        if self.masks == "segnet" and not str(self.seg_run).strip():
+            raise TdofError("hff6dof masks = 'segnet' needs seg_run = the folder of a segmentation run "
+                            "(tdof20 train segnet ...)")
+        if str(self.seg_run).strip() and self.masks != "segnet":
+            raise TdofError(f"hff6dof seg_run is read only with masks = 'segnet' (masks is '{self.masks}')")
         if self.voting not in VOTINGS:
             raise TdofError(f"hff6dof voting must be one of {', '.join(VOTINGS)}, got '{self.voting}'")
         if not 0.0 < float(self.inlier_cos) < 1.0:
@@ -142,11 +152,13 @@ def loss(net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta) -> 
 
 
 def mask_source(cfg: HFF6DoFConfig, net: HFF6DoF) -> str:
-    """'network' or 'gt': where the object pixels come from (cfg.masks, 'auto' resolved)."""
+    """'network', 'segnet' or 'gt': where the object pixels come from (cfg.masks, 'auto' resolved:
+    the network's head when it has one, else the ground truth, an oracle)."""
     if cfg.masks == "auto":
         return "network" if net.has_seg_head else "gt"
     if cfg.masks == "network" and not net.has_seg_head:
-        raise TdofError("the network has no segmentation head: predict with masks = 'gt' (ground-truth masks)")
+        raise TdofError("the network has no segmentation head: predict with masks = 'segnet' and seg_run = a "
+                        "segmentation run (tdof20 train segnet), or masks = 'gt' (ground-truth masks, an oracle)")
     return cfg.masks
 
 
@@ -154,11 +166,14 @@ def mask_source(cfg: HFF6DoFConfig, net: HFF6DoF) -> str:
 def predict_poses(net: HFF6DoF, batch: Mapping, cfg: HFF6DoFConfig, meta: MethodMeta
                   ) -> list[tuple[int, int, float, np.ndarray, np.ndarray]]:
     """Rows (b, obj_id, score, R (3,3), t (3,) mm) of a batch: the network, the object pixels (its
-    segmentation's argmax, or the batch's ground-truth ``label`` with masks 'gt'), then
+    segmentation's argmax; with masks 'segnet' or 'gt' the batch's ``label``, class indices: the
+    segmentation run's classes, which the shared prediction loop puts there, or the ground truth), then
     :func:`tdof20.methods.hff6dof_pose.recover_poses` (voting + fitting; score = mean inlier fraction)."""
     source = mask_source(cfg, net)
-    if source == "gt" and "label" not in batch:
-        raise TdofError("predicting with ground-truth masks needs the labels in the batch")
+    if source != "network" and "label" not in batch:
+        raise TdofError("predicting with ground-truth masks needs the labels in the batch" if source == "gt" else
+                        "predicting with a segmentation run's masks needs them in the batch's 'label' (the shared "
+                        "prediction loop, tdof20.methods.predict, puts them there)")
     was = net.training
     net.eval()
     try:

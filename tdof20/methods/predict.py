@@ -2,15 +2,24 @@
 results CSV (``tdof20 predict RUN --dataset ROOT --split simple|hard --out RESULTS.csv``); the run
 knows its method (config.json "method"), and the method's ``predict_poses`` gives the poses.
 
+A pose method that predicts with mask source 'segnet' (HFF6DoF without its segmentation head,
+``--set masks=segnet --set seg_run=RUN``) takes its object pixels from the segmentation network of
+the run ``seg_run`` (``tdof20 train segnet``, :mod:`tdof20.methods.segnet`), run here on the same
+images through its own transform; the run must be a segmentation run trained on the pose run's
+objects, data (the dataset digest both runs record) and image size (:func:`open_seg_run`). A
+segmentation run itself produces masks, not poses: ``predict`` on it refuses in one line (its
+segmentation IoU: :func:`segmentation_iou`).
+
 Beside the CSV, ``<stem>_info.json`` records the run's method, its config ("method_config"), the
 input depth mode and the input (rgb / rgbd), timings and counts; ``tdof20 benchmark score`` prints
 them with the scores.
 
 The time written per image is the method's ``predict_poses`` (network + pose recovery,
 device-synchronised; reading and transforming the images is not counted), shared evenly among the
-images of a batch. The network's part is measured with forward hooks on the network and its direct
-sub-networks (the outermost call counts), so "network_ms_per_image" and "pose_ms_per_image" are
-apart for every method.
+images of a batch (with mask source 'segnet', the segmentation network's forward is counted in both
+the time and the network's part). The network's part is measured with forward hooks on the network
+and its direct sub-networks (the outermost call counts), so "network_ms_per_image" and
+"pose_ms_per_image" are apart for every method.
 """
 
 from __future__ import annotations
@@ -29,7 +38,8 @@ from tdof20.errors import TdofError
 from tdof20.formats import write_json
 from tdof20.formats.io import check_parents, safe_inside
 from tdof20.methods.data import SceneImages, TransformedDataset, collate, worker_init
-from tdof20.methods.runs import depth_mode_of, open_run
+from tdof20.methods.registry import get_method, method_names
+from tdof20.methods.runs import CONFIG, Run, depth_mode_of, open_run, read_run_config
 from tdof20.methods.train import amp_dtype, select_device, to_device
 from tdof20.progress import console, progress as progress_bar
 
@@ -85,6 +95,69 @@ class NetworkTimer:
             h.remove()
 
 
+SEG_PREFIX = "seg_input."
+
+
+class WithSegInput:
+    """The pose method's transform of an item plus the segmentation run's own transform of the same
+    item, its tensors under ``seg_input.<key>`` (picklable: DataLoader workers)."""
+
+    def __init__(self, pose_transform, seg_transform):
+        self.pose_transform, self.seg_transform = pose_transform, seg_transform
+
+    def __call__(self, item) -> dict:
+        out = self.pose_transform(item)
+        out.update({SEG_PREFIX + k: v for k, v in self.seg_transform(item).items() if isinstance(v, torch.Tensor)})
+        return out
+
+
+def open_seg_run(seg_run: str | Path, pose: Run, device: str | torch.device = "cpu") -> Run:
+    """The segmentation run a pose run predicts with (mask source 'segnet'), opened on ``device``
+    after one-line refusals naming it: missing, not a run, not a segmentation run (a method whose
+    record produces poses), trained on other objects, on other data (the "dataset_sha256" digest both
+    runs record, of the dataset's objects, the training images and their labels: train both on the
+    same dataset, split and part; runs without digests: their splits) or at another image size (its
+    masks must cover the pose network's pixels one to one)."""
+    path = Path(seg_run)
+    if not str(seg_run).strip() or not path.is_dir():
+        raise TdofError("seg_run: no such segmentation run folder (tdof20 train segnet --out makes one)", path)
+    if (path / CONFIG).exists():
+        m = read_run_config(path).get("method")
+        kind = get_method(m).produces
+        if kind != "masks":
+            raise TdofError(f"seg_run: is a {m} run ({kind}), not a segmentation run: give a run of "
+                            f"tdof20 train {', '.join(method_names('masks'))}", path)
+    seg = open_run(path, device)
+    if seg.method.produces != "masks":
+        raise TdofError(f"seg_run: is a {seg.method.name} run, not a segmentation run", path)
+    if tuple(seg.meta.obj_ids) != tuple(pose.meta.obj_ids):
+        raise TdofError(f"seg_run: was trained on other objects (classes {list(seg.meta.obj_ids)}; the pose run's "
+                        f"{list(pose.meta.obj_ids)})", path)
+    mine, theirs = seg.config.get("dataset_sha256"), pose.config.get("dataset_sha256")
+    if mine is not None and theirs is not None:
+        if mine != theirs:
+            raise TdofError(f"seg_run: was trained on other data (dataset digest {mine}, the pose run's {theirs}): "
+                            "train it on the pose run's dataset, split and part", path)
+    elif seg.config.get("split") != pose.config.get("split"):
+        raise TdofError(f"seg_run: was trained on split {seg.config.get('split')}, the pose run on "
+                        f"{pose.config.get('split')}", path)
+    if tuple(seg.meta.image_size) != tuple(pose.meta.image_size):
+        raise TdofError("seg_run: its image size {}x{} is not the pose run's {}x{}: train it at the pose run's size"
+                        .format(*seg.meta.image_size, *pose.meta.image_size), path)
+    return seg
+
+
+def seg_labels(seg: Run, batch: dict, labels_are_classes: bool, meta) -> torch.Tensor:
+    """The segmentation run's classes of a batch (its inputs under ``seg_input.``) in the pose method's
+    label convention: class indices (``labels_are_classes``) or object ids (0 = background)."""
+    inputs = {k[len(SEG_PREFIX):]: v for k, v in batch.items() if k.startswith(SEG_PREFIX)}
+    classes, _ = seg.method.predict_masks(seg.net, inputs, seg.cfg, seg.meta)
+    if labels_are_classes:
+        return classes
+    ids = torch.tensor([0, *meta.obj_ids], dtype=torch.int64, device=classes.device)
+    return ids[classes]
+
+
 def impossible_pose(R, t, diameter: float | None) -> bool:
     """A pose no camera can see: not finite, the object's origin on or behind the camera plane
     (t_z <= 0), or the camera within half the object's diameter of the model's origin (inside the
@@ -110,8 +183,9 @@ def predict(run_dir: str | Path, dataset_root: str | Path, split: str, out_csv: 
     method_options (a table; nested tables for a nested config) and keyword ``options``: options of
     the run's method config for this prediction (e.g. ``masks="gt"``, ``voting="3d"`` for HFF6DoF;
     None = the run's), checked as a TOML file's (an option the method does not have is refused).
-    For HFF6DoF: 'gt' masks are the dataset's visible masks (an oracle segmentation, the only
-    choice for a run trained without the segmentation head; not a valid submission). amp: mixed
+    For HFF6DoF: 'segnet' masks (with ``seg_run``) are a separately trained segmentation network's,
+    the paper's ablation for a run trained without the segmentation head; 'gt' masks are the
+    dataset's visible masks (an oracle segmentation; not a valid submission). amp: mixed
     precision for the network (None = on for CUDA). batch_size: images per forward pass. seed: the
     pose recovery's generator. cache_dir: where restored depth the dataset lacks is rendered
     (default ROOT/.cache; for a read-only dataset folder), as for training.
@@ -170,11 +244,15 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     dev = select_device(device)
     run = open_run(run_dir, dev)
     method, net, meta = run.method, run.net, run.meta
+    if method.produces != "poses":
+        raise TdofError(f"is a {method.name} run: it produces {method.produces}, not poses; give it to a pose "
+                        f"method's prediction (--set masks=segnet --set seg_run={run_dir})", run_dir)
     cfg = prediction_config(method, run.cfg, {**(method_options or {}), **options}, seed)
     try:
         mask_source = method.mask_source(cfg, net)
     except TdofError as e:
-        raise TdofError(f"{e}: use --set masks=gt", run_dir) from None
+        raise TdofError(str(e), run_dir) from None
+    seg = open_seg_run(method.seg_run(cfg), run, dev) if mask_source == "segnet" else None
     labels = method.needs_labels(cfg, net)
     use_amp = (dev.type == "cuda") if amp is None else (bool(amp) and dev.type == "cuda")
     if dev.type == "cuda":
@@ -186,9 +264,11 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
             safe_inside(Path(dataset_root), Path(dataset_root) / ".cache")
         open_dataset(dataset_root, scene_folder, cache_dir=cache_dir).render_restored(images, scene_folder,
                                                                                        show_progress=progress)
+    transform = method.transform(cfg, meta, train=False)
+    if seg is not None:
+        transform = WithSegInput(transform, seg.method.transform(seg.cfg, seg.meta, train=False))
     data = TransformedDataset(SceneImages(dataset_root, images, labels=labels, restored=depth_mode == "restored",
-                                          split=scene_folder, cache_dir=cache_dir),
-                              method.transform(cfg, meta, train=False))
+                                          split=scene_folder, cache_dir=cache_dir), transform)
     loader = torch.utils.data.DataLoader(data, batch_size=int(batch_size), shuffle=False,
                                          num_workers=num_workers, collate_fn=collate, worker_init_fn=worker_init,
                                          pin_memory=dev.type == "cuda")
@@ -197,7 +277,7 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
     known = set(ds.obj_ids)
     t_all = 0.0
     n_img = n_foreign = n_impossible = 0
-    timer = NetworkTimer(net, dev)
+    timers = [NetworkTimer(net, dev)] + ([NetworkTimer(seg.net, dev)] if seg is not None else [])
     try:
         with torch.inference_mode(), progress_bar(bool(progress), unit="img") as bar:
             task = bar.add_task(f"predict {split}/{part}", total=len(images))
@@ -206,6 +286,8 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                 _sync(dev)
                 t0 = time.perf_counter()
                 with torch.autocast(dev.type, dtype=amp_dtype(dev), enabled=use_amp):
+                    if seg is not None:  # the segmentation run's masks, where the method reads its labels
+                        batch["label"] = seg_labels(seg, batch, method.labels_are_classes, meta)
                     res = method.predict_poses(net, batch, cfg, meta)
                 _sync(dev)
                 dt = time.perf_counter() - t0
@@ -224,11 +306,13 @@ def predict_rows(run_dir: str | Path, dataset_root: str | Path, split: str, *, d
                 n_img += B
                 bar.advance(task, B)
     finally:
-        timer.close()
-    t_net = min(timer.seconds, t_all)
+        for timer in timers:
+            timer.close()
+    t_net = min(sum(timer.seconds for timer in timers), t_all)
     info = {"run": str(Path(run_dir).resolve()), "method": method.name, "input": method.inputs,
             "method_config": method.config_to_data(cfg), "dataset": str(dataset_root.resolve()), "split": split,
             "part": part, "images": n_img, "predictions": len(rows), "masks": mask_source,
+            **({"seg_run": str(Path(method.seg_run(cfg)).resolve())} if seg is not None else {}),
             "dropped_objects_not_in_dataset": n_foreign, "dropped_impossible_poses": n_impossible,
             "depth_mode": depth_mode,
             "image_size": list(meta.image_size), "device": str(dev), "amp": use_amp, "batch_size": int(batch_size),

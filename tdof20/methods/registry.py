@@ -3,7 +3,8 @@ of the method contract (:class:`~tdof20.methods.contract.PoseMethod`) whose impl
 first use.
 
     from tdof20.methods.registry import get_method, method_names
-    method_names()                          # ['hff6dof', 'pvnet', 'densefusion', 'ffb6d']
+    method_names()                          # ['hff6dof', 'pvnet', 'densefusion', 'ffb6d']: the pose methods
+    method_names(None)                      # every registered one, 'segnet' (masks, not poses) too
     m = get_method("pvnet")
     cfg = m.config_class()                  # every option with a working default (TOML: m.config_from)
     cfg = m.with_options(cfg, parse_set_options(["n_hyp=64"]), "--set")   # strict keys, typed values
@@ -18,6 +19,13 @@ A record holds what is known without importing the method (its name, description
 image size, the paper's and the original's figures, what ``tdof20 reproduce`` runs of it) and a
 loader of its implementation class: the method's module, which imports torch, is imported only
 when a piece is used, so this file (and ``tdof20 --help``) stays torch-free.
+
+A record's ``produces`` says what the method gives: 'poses' (a compared pose estimation method:
+:func:`methods` and :func:`method_names` list these, so reproduce's tables, the profile table and
+every loop over "the methods" see only them) or 'masks' ('segnet', :mod:`tdof20.methods.segnet`: a
+segmentation network trained by the same ``tdof20 train`` loop, whose run a pose method's
+``masks = 'segnet'``, ``seg_run = RUN`` reads at prediction time; ``tdof20 predict`` refuses it).
+:func:`get_method` finds either kind.
 
 How to add a method: docs/methods.md ("How to add a method").
 """
@@ -35,7 +43,7 @@ from typing import Any
 from tdof20.config import config_from_data
 from tdof20.errors import TdofError
 from tdof20.methods.base import MethodMeta
-from tdof20.methods.contract import PoseMethod, ReproduceSettings
+from tdof20.methods.contract import PRODUCES, PoseMethod, ReproduceSettings
 
 INPUTS = ("rgb", "rgbd")
 #: the method ``tdof20 train`` and :func:`tdof20.methods.train.train` take unless told otherwise (the paper's)
@@ -71,7 +79,9 @@ class Method(PoseMethod):
     paper: the paper's Table 3 figures for it ({"parameters_M", "macs_G", "fps", "gpu"}, those it
     gives); original: the original implementation's published or counted figures
     ({"parameters_M": ..., "source": ...}); notes: what its profile counts, where that differs
-    from the paper's Table 3 or the original (printed under the table).
+    from the paper's Table 3 or the original (printed under the table); produces: 'poses' (a
+    compared pose method) or 'masks' (a segmentation network serving a pose method's
+    ``masks = 'segnet'``; not a row of any table).
     """
 
     name: str
@@ -83,10 +93,13 @@ class Method(PoseMethod):
     paper: Mapping[str, Any] = field(default_factory=dict)
     original: Mapping[str, Any] = field(default_factory=dict)
     notes: str = ""
+    produces: str = "poses"
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
             raise ValueError(f"method {self.name}: inputs must be one of {INPUTS}, got {self.inputs!r}")
+        if self.produces not in PRODUCES:
+            raise ValueError(f"method {self.name}: produces must be one of {PRODUCES}, got {self.produces!r}")
 
     @cached_property
     def impl(self) -> PoseMethod:
@@ -166,6 +179,12 @@ class Method(PoseMethod):
     def needs_labels(self, cfg, net) -> bool:
         return self.impl.needs_labels(cfg, net)
 
+    def seg_run(self, cfg) -> str:
+        return self.impl.seg_run(cfg)
+
+    def predict_masks(self, net, batch, cfg, meta):
+        return self.impl.predict_masks(net, batch, cfg, meta)
+
     def prediction_summary(self, cfg, meta) -> dict:
         return self.impl.prediction_summary(cfg, meta)
 
@@ -184,20 +203,23 @@ def register(method: Method, replace: bool = False) -> Method:
     return method
 
 
-def method_names() -> list[str]:
-    """The registered methods, in registration order."""
-    return list(_REGISTRY)
+def methods(produces: str | None = "poses") -> list[Method]:
+    """The registered methods that produce ``produces`` ('poses': the compared pose estimation
+    methods; 'masks': the segmentation networks; None: every one), in registration order."""
+    return [m for m in _REGISTRY.values() if produces is None or m.produces == produces]
 
 
-def methods() -> list[Method]:
-    return list(_REGISTRY.values())
+def method_names(produces: str | None = "poses") -> list[str]:
+    """The names of :func:`methods` (by default the pose methods; None: every registered one)."""
+    return [m.name for m in methods(produces)]
 
 
 def get_method(name: str) -> Method:
-    """The method called ``name``; an unknown one is a one-line TdofError listing the known ones."""
+    """The method called ``name`` (either kind); an unknown one is a one-line TdofError listing the
+    known ones."""
     m = _REGISTRY.get(str(name).strip().lower())
     if m is None:
-        raise TdofError(f"unknown method '{name}' (known: {', '.join(method_names())})")
+        raise TdofError(f"unknown method '{name}' (known: {', '.join(method_names(None))})")
     return m
 
 
@@ -266,6 +288,12 @@ def _ffb6d() -> type[PoseMethod]:
     return FFB6DMethod
 
 
+def _segnet() -> type[PoseMethod]:
+    from tdof20.methods.segnet import SegNetMethod  # imports torch
+
+    return SegNetMethod
+
+
 def _hff6dof_unused_choices(options: Mapping) -> tuple[str, ...]:
     """HFF6DoF's bearing_tol acts only with bearing voting, inlier_cos only with 3D voting."""
     return ("bearing_tol",) if options.get("voting") == "3d" else ("inlier_cos",)
@@ -282,9 +310,8 @@ register(Method(
           "stay under its 85.12 G",
     reproduce=ReproduceSettings(
         label="HFF6DoF (bearing + PnP)", variant_labels={"3d": "HFF6DoF (3D voting + LSQ)"}, rank=1,
-        epochs={"smoke": 1, "cpu": 8, "gpu": 20, "full": 100},
         choice_options=("depth_mode", "min_pixels", "max_points", "n_hyp", "inlier_cos", "bearing_tol"),
-        candidates={"depth_mode": ["filled", "raw"], "bearing_tol": [0.02, 0.04]},
+        candidates={"depth_mode": ["filled", "raw"]},  # as many candidate sets as each rival (issue 23)
         unused_choices=_hff6dof_unused_choices)))
 
 register(Method(
@@ -298,7 +325,7 @@ register(Method(
           "segmentation head and the per-class vertex heads, of which one 18-channel head runs per pixel; the "
           "paper's Table 3 gives no PVNet figures",
     reproduce=ReproduceSettings(
-        label="PVNet", epochs={"smoke": 1, "cpu": 8, "gpu": 20, "full": 100},
+        label="PVNet",
         choice_options=("min_pixels", "inlier_cos", "vote_max_pixels", "min_inlier_ratio", "n_hyp", "max_rounds"),
         candidates={"inlier_cos": [0.99, 0.97]})))
 
@@ -315,7 +342,7 @@ register(Method(
           "and BatchNorm; one forward = segmentation at full size + the estimator on one 160x160 crop of 1,000 "
           "points + one refiner pass: each further object adds the estimator and 2 refiner passes (~17 G)",
     reproduce=ReproduceSettings(
-        label="DenseFusion", epochs={"smoke": 1, "cpu": 4, "gpu": 10, "full": 50},
+        label="DenseFusion",
         choice_options=("depth_mode", "refine_iterations", "min_points"),
         candidates={"refine_iterations": [2, 0]},
         preset_options={"smoke": {"n_points": 128, "crop_size": 48}, "cpu": {"n_points": 500, "crop_size": 64}})))
@@ -331,8 +358,19 @@ register(Method(
     notes="12,800 points sampled from the depth (the original's 480x640/24); neighbour indices are computed "
           "in the transform (scipy), outside the network's time; the counter skips KNN and MeanShift",
     reproduce=ReproduceSettings(
-        label="FFB6D", epochs={"smoke": 1, "cpu": 4, "gpu": 10, "full": 50},
+        label="FFB6D",
         choice_options=("depth_mode", "bandwidth_mm", "min_points", "max_votes"),
         candidates={"bandwidth_mm": [40.0, 20.0]},
         preset_options={"smoke": {"n_points": 512, "meanshift_iters": 30, "max_votes": 500},
                         "cpu": {"n_points": 2048}})))
+
+register(Method(
+    name="segnet", implementation=_segnet, produces="masks",
+    description="segmentation network (DenseFusion's PSPNet-ResNet18), not a pose method: object masks for a pose "
+                "method's masks='segnet' seg_run=RUN (HFF6DoF without its segmentation head)",
+    inputs="rgb", default_image_size=(240, 320),
+    original={"parameters_M": 17.46, "source": "j96w/DenseFusion vanilla_segmentation: its PSPNet-ResNet18 "
+                                              "(no BN), as counted for DenseFusion's record"},
+    notes="DenseFusion's segmentation network alone (tdof20.methods.segnet.SegNet, the same module DenseFusion "
+          "builds), with BatchNorm; trained with pixel-wise cross-entropy",
+    reproduce=ReproduceSettings(label="segmentation network (PSPNet-ResNet18)", rank=99)))

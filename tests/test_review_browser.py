@@ -1,0 +1,136 @@
+"""The review tool in a real browser (issue 25, part 6): headless Chromium (Debian's, through
+Playwright) opens a scene with a refused object and a flagged frame, places the object with the
+keyboard, snaps it, relabels, sees its frames labelled, and rejects the flagged frame. The
+screenshots are the ones in docs/annotate.md (docs/img/review_*.png)."""
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import uvicorn
+from playwright.sync_api import sync_playwright
+
+from tdof20.annotate.corrections import read_journal
+from tdof20.formats import read_json
+from tdof20.review import make_app
+from tests.test_review import build_broken_scene, true_pose
+
+CHROMIUM = Path("/usr/bin/chromium")
+IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
+pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium (/usr/bin/chromium)")
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    scene = build_broken_scene(tmp_path_factory.mktemp("review_browser"), corrupt_step=7)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(make_app(scene["scene"]), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the review server did not start"
+        time.sleep(0.05)
+    yield {**scene, "url": f"http://127.0.0.1:{port}"}
+    server.should_exit = True
+    thread.join(10)
+
+
+def _entries(page) -> int:
+    return page.evaluate("window.reviewLast ? window.reviewLast.entry.id : 0")
+
+
+def _key(page, key: str) -> None:
+    """Press a key and wait until its correction is in the journal (the page shows the answer)."""
+    before = _entries(page)
+    page.keyboard.press(key)
+    page.wait_for_function(f"window.reviewLast && window.reviewLast.entry.id > {before}", timeout=60000)
+
+
+def test_a_refused_object_is_placed_snapped_and_labelled_in_chromium(served):
+    url, index, obj_id = served["url"], served["index"], served["obj_id"]
+    IMG.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM),
+                                    args=["--no-sandbox", "--disable-gpu", "--disable-background-networking"])
+        try:
+            page = browser.new_page(viewport={"width": 1360, "height": 820})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+
+            # the scene: the refused object with its reason, the flagged frame with its reason
+            page.goto(url + "/")
+            assert page.locator("text=Objects not labelled").is_visible()
+            assert "fits its cluster badly" in page.inner_text("main")
+            assert page.locator("#grid td.cell.flagged").count() == 1
+
+            # place it: turn and move with the keys (step sizes chosen in the panel), then snap
+            page.goto(f"{url}/place?object={index}")
+            page.wait_for_function("window.reviewReady === true", timeout=60000)
+            assert page.is_hidden("#nogl"), "no WebGL in headless Chromium"
+            assert "failed" in page.inner_text(f"#badge-{index}")
+            st = page.evaluate("fetch('/api/state').then(r => r.json())")
+            T_table_ref = np.asarray(st["T_table_ref"], float).reshape(4, 4)
+            truth = T_table_ref @ true_pose(served["raw"], obj_id)
+
+            def pose() -> np.ndarray:
+                s = page.evaluate("fetch('/api/state').then(r => r.json())")
+                return np.asarray(next(o for o in s["objects"] if o["index"] == index)["T_table_model"]).reshape(4, 4)
+
+            cur = pose()
+            dR = truth[:3, :3] @ cur[:3, :3].T
+            yaw = math.degrees(math.atan2(dR[1, 0], dR[0, 0]))
+            page.select_option("#rstep", "15.0")
+            for _ in range(round(abs(yaw) / 15.0)):
+                _key(page, "q" if yaw > 0 else "e")
+            keys = {"x": ("ArrowRight", "ArrowLeft"), "y": ("ArrowUp", "ArrowDown"), "z": ("PageUp", "PageDown")}
+            for step in ("25.0", "5.0"):
+                page.select_option("#tstep", step)
+                cur = pose()
+                for k, axis in enumerate("xyz"):
+                    d = truth[k, 3] - cur[k, 3]
+                    for _ in range(round(abs(d) / float(step))):
+                        _key(page, keys[axis][0] if d > 0 else keys[axis][1])
+            assert np.linalg.norm(pose()[:3, 3] - truth[:3, 3]) < 6.0
+            _key(page, "n")                                              # snap
+            assert "snap: fitness" in page.inner_text("#result")
+            assert np.linalg.norm(pose()[:3, 3] - truth[:3, 3]) < 3.0
+            page.wait_for_timeout(300)
+            page.screenshot(path=str(IMG / "review_place.png"))
+
+            # relabel: place, label and QA again; the object's frames are labelled
+            page.click("aside button[data-api='/api/relabel']")
+            page.wait_for_function("document.getElementById('status').textContent.startsWith('relabelled')",
+                                   timeout=120000)
+            assert "corrected" in page.inner_text(f"#badge-{index}")
+            page.goto(url + "/frame/0/3")
+            assert "labelled" in page.inner_text("#frame-status") and str(obj_id) in page.inner_text("#frame-status")
+            page.wait_for_function("document.getElementById('img-opaque').complete", timeout=30000)
+            page.screenshot(path=str(IMG / "review_frame.png"), full_page=True)
+            gt = read_json(served["scene"] / "scene_gt.json")
+            assert sum(any(int(e["obj_id"]) == obj_id for e in v) for v in gt.values()) >= 10
+
+            # the flagged frame: its reason shown; rejected, nothing is left unresolved
+            page.goto(url + "/")
+            assert page.locator("text=Objects not labelled").count() == 0
+            row = page.locator("table.flagged-list tr", has_text="arm 0 step 7")
+            assert "colour" in row.inner_text().lower() or "png" in row.inner_text().lower()
+            row.locator("button", has_text="reject").click()
+            page.wait_for_function("document.getElementById('unresolved').textContent.startsWith('0 ')",
+                                   timeout=30000)
+            assert page.locator("#grid td.cell.rejected").count() == 1
+            page.screenshot(path=str(IMG / "review_frames.png"), full_page=True)
+
+            page.goto(url + "/objects")
+            page.wait_for_function("Array.from(document.images).every(i => i.complete)", timeout=60000)
+            page.locator(f"#object-{index}").screenshot(path=str(IMG / "review_object.png"))
+            assert errors == []
+        finally:
+            browser.close()
+    ops = [e["op"] for e in read_journal(served["scene"] / "work")]
+    assert ops[-1] == "frames" and "relabel" in ops and ops.count("place") >= 4
