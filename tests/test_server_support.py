@@ -132,12 +132,13 @@ CLI = [sys.executable, "-c", "from tdof20.server.cli import app; app()"]
 class LiveServer:
     """``tdof20 serve`` in a subprocess on loopback (stopped on exit), users alice and bob."""
 
-    def __init__(self, dataset: Path, data: Path, *args: str):
+    def __init__(self, dataset: Path, data: Path, *args: str, preexec=None, tokens: dict | None = None):
         self.data = data
+        self.preexec = preexec
         data.mkdir(parents=True, exist_ok=True)
         engine = make_engine(ServerConfig(dataset=dataset, data=data).db_url)
         init_db(engine)
-        self.tokens = {n: auth.add_user(engine, n) for n in ("alice", "bob")}
+        self.tokens = tokens or {n: auth.add_user(engine, n) for n in ("alice", "bob")}
         engine.dispose()
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -145,7 +146,8 @@ class LiveServer:
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> "LiveServer":
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                     preexec_fn=self.preexec)
         for _ in range(300):  # up to 30 s
             try:
                 with urllib.request.urlopen(self.url + "/openapi.json", timeout=2):

@@ -11,7 +11,8 @@ API (JSON; ``Authorization: Bearer TOKEN``; schema at /openapi.json)::
 
 Pages: ``/`` leaderboard, ``/signin`` (name + token), ``/submit`` (upload form), ``/mine``,
 ``/s/{uid}`` (status, refreshing while queued; results: per-object table, per scene, plots),
-``/s/{uid}/withdraw``. Every form carries a CSRF token (the session's; the sign-in form's is a
+``/s/{uid}/withdraw`` (pages are left out of the OpenAPI schema, which is the API's). Every
+form carries a CSRF token (the session's; the sign-in form's is a
 double-submit cookie). Every refusal is one line: JSON ``{"detail": "..."}`` from the API.
 """
 
@@ -22,13 +23,14 @@ from pathlib import Path
 from fastapi import Depends, FastAPI, File, Form, Request, UploadFile
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from tdof20.server import auth, submissions as subs
 from tdof20.server.config import ServerConfig
 from tdof20.server.db import init_db, make_engine
 from tdof20.server.facts import DatasetFacts
-from tdof20.server.store import Refused, Store
+from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
 
 TEMPLATES = Path(__file__).with_name("templates")
 SESSION_COOKIE = "tdof20_session"
@@ -92,15 +94,36 @@ async def _too_large(limit: int, send: Send) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
+def _out_of_room(e: BaseException) -> bool:
+    """Whether ``e`` was caused, at any depth, by a write that found no room."""
+    seen = 0
+    while e is not None and seen < 20:  # bounded: a cause chain
+        if isinstance(e, OSError) and e.errno in FULL_ERRNOS:
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
+
+
 def create_app(cfg: ServerConfig) -> ASGIApp:
     """The server's ASGI application for ``cfg`` (the database is created where missing)."""
     store = Store(cfg.data)  # (the folder first: the SQLite file lies in it)
+    store.remove_stale_uploads()
     engine = make_engine(cfg.db_url)
     init_db(engine)
     facts = DatasetFacts(cfg.dataset)
     templates = Jinja2Templates(directory=str(TEMPLATES))
     app = FastAPI(title="tdof20 benchmark server", version="1", docs_url=None, redoc_url=None)
     app.state.engine = engine
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, e: StarletteHTTPException):
+        """FastAPI's own refusals, one line; a form that could not be parsed because the disk under
+        the multipart parser's temp files is full is the full disk's 507, not a 400."""
+        if _out_of_room(e):
+            return await _refused(request, Refused(507, FULL))
+        if request.url.path.startswith("/api/") or request.url.path.startswith("/openapi"):
+            return JSONResponse({"detail": e.detail}, status_code=e.status_code, headers=e.headers)
+        return page(request, "error.html", {"message": e.detail}, status=e.status_code)
 
     @app.exception_handler(Refused)
     async def _refused(request: Request, e: Refused):
@@ -137,9 +160,11 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         return templates.TemplateResponse(request, name, {"user": user, "splits": facts.splits, **ctx},
                                           status_code=status)
 
-    def fields(method, split, description, authors, hardware, time_per_image, training_data, public) -> subs.Fields:
-        return subs.Fields(method=method, split=split, description=description, authors=authors, hardware=hardware,
-                           time_per_image=time_per_image, training_data=training_data, public=bool(public))
+    def fields(method, split, part, description, authors, hardware, time_per_image, training_data,
+               public) -> subs.Fields:
+        return subs.Fields(method=method, split=split, part=part, description=description, authors=authors,
+                           hardware=hardware, time_per_image=time_per_image, training_data=training_data,
+                           public=bool(public))
 
     def take(user: dict, file: UploadFile, f: subs.Fields) -> dict:
         return subs.accept(engine, store, facts, user, file.file, file.filename or "", f, cfg.max_upload_bytes,
@@ -148,12 +173,14 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     # ------------------------------------------------------------------ API
     @app.post("/api/submissions", status_code=201)
     def api_submit(user: dict = Depends(api_user), file: UploadFile = File(...), method: str = Form(...),
-                   split: str = Form(...), description: str = Form(""), authors: str = Form(""),
+                   split: str = Form(...), part: str = Form("test"), description: str = Form(""),
+                   authors: str = Form(""),
                    hardware: str = Form(""), time_per_image: str = Form(""), training_data: str = Form(""),
                    public: bool = Form(False)) -> dict:
         """Submit a BOP results CSV: checked at once (a 400 names the line of the first error),
-        stored, queued; returns its status (``uid``, ``status``: queued)."""
-        return take(user, file, fields(method, split, description, authors, hardware, time_per_image,
+        stored, queued; returns its status (``uid``, ``status``: queued). ``part``: test (the
+        default: ranked, aggregates only) or val (the protocol's validation part: per-image errors)."""
+        return take(user, file, fields(method, split, part, description, authors, hardware, time_per_image,
                                        training_data, public))
 
     @app.get("/api/submissions")
@@ -173,21 +200,21 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         return subs.leaderboard(engine, split, metric)
 
     # ------------------------------------------------------------------ pages
-    @app.get("/", response_class=HTMLResponse)
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def home(request: Request, split: str | None = None, metric: str = "add_s"):
         split = split if split in facts.splits else facts.splits[0]
         rows = subs.leaderboard(engine, split, metric)
         return page(request, "leaderboard.html", {"rows": rows, "split": split, "metric": metric,
                                                   "metrics": subs.LEADERBOARD_METRICS})
 
-    @app.get("/signin", response_class=HTMLResponse)
+    @app.get("/signin", response_class=HTMLResponse, include_in_schema=False)
     def signin_form(request: Request):
         token = auth.secrets.token_urlsafe(24)
         resp = page(request, "signin.html", {"csrf": token})
         resp.set_cookie(SIGNIN_COOKIE, token, httponly=True, samesite="strict", secure=cfg.secure_cookies)
         return resp
 
-    @app.post("/signin")
+    @app.post("/signin", include_in_schema=False)
     def signin(request: Request, name: str = Form(...), token: str = Form(...), csrf: str = Form("")):
         if not auth.same_token(request.cookies.get(SIGNIN_COOKIE), csrf):
             raise Refused(403, "the form's CSRF token is missing or wrong: reload the page")
@@ -200,7 +227,7 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         resp.delete_cookie(SIGNIN_COOKIE)
         return resp
 
-    @app.post("/signout")
+    @app.post("/signout", include_in_schema=False)
     def signout(request: Request, csrf: str = Form("")):
         user = need_page_user(request)
         check_csrf(user, csrf)
@@ -209,38 +236,41 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         resp.delete_cookie(SESSION_COOKIE)
         return resp
 
-    @app.get("/submit", response_class=HTMLResponse)
+    @app.get("/submit", response_class=HTMLResponse, include_in_schema=False)
     def submit_form(request: Request):
         need_page_user(request)
-        return page(request, "submit.html", {"limits": cfg})
+        return page(request, "submit.html", {"limits": cfg, "val_splits": [s for s in facts.splits
+                                                                           if "val" in facts.parts(s)]})
 
-    @app.post("/submit")
+    @app.post("/submit", include_in_schema=False)
     def submit_page(request: Request, file: UploadFile = File(...), method: str = Form(...), split: str = Form(...),
-                    description: str = Form(""), authors: str = Form(""), hardware: str = Form(""),
+                    part: str = Form("test"), description: str = Form(""), authors: str = Form(""),
+                    hardware: str = Form(""),
                     time_per_image: str = Form(""), training_data: str = Form(""), public: bool = Form(False),
                     csrf: str = Form("")):
         user = need_page_user(request)
         check_csrf(user, csrf)
-        out = take(user, file, fields(method, split, description, authors, hardware, time_per_image, training_data,
+        out = take(user, file, fields(method, split, part, description, authors, hardware, time_per_image,
+                                      training_data,
                                       public))
         return RedirectResponse(f"/s/{out['uid']}", status_code=303)
 
-    @app.get("/mine", response_class=HTMLResponse)
+    @app.get("/mine", response_class=HTMLResponse, include_in_schema=False)
     def mine_page(request: Request):
         return page(request, "mine.html", {"rows": subs.mine(engine, need_page_user(request))})
 
-    @app.get("/s/{uid}", response_class=HTMLResponse)
+    @app.get("/s/{uid}", response_class=HTMLResponse, include_in_schema=False)
     def submission_page(request: Request, uid: str):
         return page(request, "submission.html", {"s": subs.get(engine, uid, page_user(request))})
 
-    @app.post("/s/{uid}/withdraw")
+    @app.post("/s/{uid}/withdraw", include_in_schema=False)
     def withdraw_page(request: Request, uid: str, csrf: str = Form("")):
         user = need_page_user(request)
         check_csrf(user, csrf)
         subs.withdraw(engine, uid, user)
         return RedirectResponse(f"/s/{uid}", status_code=303)
 
-    @app.get("/s/{uid}/plots/{name}")
+    @app.get("/s/{uid}/plots/{name}", include_in_schema=False)
     def plot(request: Request, uid: str, name: str) -> Response:
         s = subs.get(engine, uid, page_user(request))
         if not s["result"] or name not in s["result"]["plots"]:

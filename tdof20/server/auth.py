@@ -20,6 +20,27 @@ NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 TOKEN_RE = re.compile(r"tdof20_([0-9a-f]{16})_([A-Za-z0-9_-]{20,64})")
 SESSION_S = 12 * 3600
 _hasher = PasswordHasher()
+VERIFIED_MAX = 4096  # (stored hash, sha256 of a secret) pairs argon2 has accepted, kept in memory
+_verified: dict[tuple[str, str], bool] = {}
+
+
+def _verify(token_hash: str, secret: str) -> bool:
+    """argon2's verdict on a secret against a stored hash. argon2 is slow on purpose (~0.1 s,
+    against guessing) and an API client sends the same token with every request, so a pair once
+    accepted is remembered by (hash, sha256 of the secret): the row is still read each time, so a
+    revoked or replaced token fails at once (the row says revoked, or its hash changed). Refusals
+    are not remembered: every wrong guess costs argon2's time."""
+    key = (token_hash, hashlib.sha256(secret.encode()).hexdigest())
+    if key in _verified:
+        return True
+    try:
+        _hasher.verify(token_hash, secret)
+    except (VerificationError, InvalidHashError):
+        return False
+    if len(_verified) >= VERIFIED_MAX:
+        _verified.clear()
+    _verified[key] = True
+    return True
 
 
 def _new_token() -> tuple[str, str, str]:
@@ -78,9 +99,7 @@ def authenticate(engine: Engine, token: str | None) -> dict | None:
                         .where(users.c.token_id == m.group(1))).first()
     if row is None or row.revoked:
         return None
-    try:
-        _hasher.verify(row.token_hash, m.group(2))
-    except (VerificationError, InvalidHashError):
+    if not _verify(row.token_hash, m.group(2)):
         return None
     return {"id": row.id, "name": row.name}
 

@@ -109,6 +109,8 @@ def submit_command(results: Path = typer.Argument(..., help="a BOP results CSV")
                    token: str = typer.Option(..., envvar="TDOF20_TOKEN", help="your API token"),
                    method: str = typer.Option(..., help="the method's name"),
                    split: str = typer.Option(..., help="the protocol: simple or hard"),
+                   part: str = typer.Option("test", help="test, or val: the protocol's validation part "
+                                                         "(per-image errors shown, not ranked)"),
                    description: str = typer.Option("", help="the method in a few lines"),
                    authors: str = typer.Option("", help="authors"),
                    hardware: str = typer.Option("", help="the hardware the times were measured on"),
@@ -117,7 +119,7 @@ def submit_command(results: Path = typer.Argument(..., help="a BOP results CSV")
                    public: bool = typer.Option(False, help="show it on the leaderboard once scored")) -> None:
     """Submit a results file to a benchmark server."""
     out = submit(results, server, token, method, split, description, authors, hardware, time_per_image,
-                 training_data, public)
+                 training_data, public, part)
     typer.echo(f"submitted {out['uid']}: {out['status']} ({server.rstrip('/')}/s/{out['uid']})")
     for w in out.get("warnings", []):
         typer.echo(f"warning: {w}")

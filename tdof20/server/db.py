@@ -5,7 +5,14 @@ Tables: ``users`` (name, token id, argon2 hash of the token's secret, revoked), 
 (page sign-ins: sha256 of the cookie, CSRF token, expiry), ``submissions`` (owner, method and its
 description, protocol, stored file, status, result JSON) and ``jobs`` (one per submission: state
 queued | running | done | failed | cancelled, the current claim, its lease, attempts, stage).
-``meta`` records the schema version; a database of a newer version is refused.
+``meta`` records the schema version (for a tdof20 older than alembic's table, which refuses a
+newer one); alembic's ``alembic_version`` the revision.
+
+Migrations (alembic, :mod:`tdof20.server.migrations`): every start (server, worker, ``serve user``)
+upgrades the database in place to this tdof20's schema, inside one transaction that holds SQLite's
+writer lock or a PostgreSQL advisory lock, so processes that start together upgrade it once and a
+failed upgrade leaves the old schema whole. A database of the first server (tables and ``meta``
+but no ``alembic_version``) is schema 1 = revision 0001. A database newer than this tdof20 is refused.
 
 Claiming is atomic: PostgreSQL ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite takes its single
 writer lock for every transaction (``BEGIN IMMEDIATE``). A claim carries a random token and a lease;
@@ -20,14 +27,22 @@ import json
 import secrets
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from sqlalchemy import (Boolean, Column, Engine, Float, ForeignKey, Integer, MetaData, String, Table, Text, and_,
-                        create_engine, event, or_, select, update)
+from alembic import command
+from alembic.config import Config as AlembicConfig
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from alembic.util import CommandError
+from sqlalchemy import (Boolean, Column, Engine, Float, ForeignKey, Index, Integer, MetaData, String, Table, Text,
+                        and_, create_engine, event, inspect, or_, select, text, update)
 
 from tdof20.errors import TdofError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+MIGRATIONS = Path(__file__).with_name("migrations")
+PG_LOCK = 2024_0024  # the advisory lock key that serialises upgrades on PostgreSQL
 MAX_ATTEMPTS = 3  # a job whose lease expired this many times fails
 
 metadata = MetaData()
@@ -53,6 +68,7 @@ submissions = Table(
     Column("user_id", Integer, ForeignKey("users.id"), nullable=False, index=True),
     Column("method", String(100), nullable=False),
     Column("split", String(32), nullable=False),
+    Column("part", String(8), nullable=False, server_default="test"),  # test | val (per-image detail)
     Column("description", Text, nullable=False, default=""),
     Column("authors", Text, nullable=False, default=""),
     Column("hardware", Text, nullable=False, default=""),
@@ -81,7 +97,8 @@ jobs = Table(
     Column("attempts", Integer, nullable=False, default=0),
     Column("stage", String(64), nullable=False, default="queued"),
     Column("started", Float),
-    Column("finished", Float))
+    Column("finished", Float),
+    Index("ix_jobs_state_id", "state", "id"))
 
 
 def make_engine(url: str) -> Engine:
@@ -111,16 +128,42 @@ def make_engine(url: str) -> Engine:
     raise TdofError(f"--db must be sqlite:///PATH or postgresql://..., got {url.split(':', 1)[0]}:...")
 
 
+def _alembic() -> AlembicConfig:
+    cfg = AlembicConfig()
+    cfg.set_main_option("script_location", str(MIGRATIONS))
+    return cfg
+
+
 def init_db(engine: Engine) -> None:
-    """Create the tables where missing and record the schema version; refuse a newer schema."""
-    metadata.create_all(engine)
+    """Bring the database to this tdof20's schema: create it where empty, upgrade it in place
+    where older (one transaction; see the module docstring); refuse one that is newer."""
+    cfg = _alembic()
+    head = ScriptDirectory.from_config(cfg).get_current_head()
     with engine.begin() as c:
-        row = c.execute(select(meta.c.value).where(meta.c.key == "schema_version")).first()
-        if row is None:
-            c.execute(meta.insert().values(key="schema_version", value=str(SCHEMA_VERSION)))
-        elif int(row.value) > SCHEMA_VERSION:
-            raise TdofError(f"the database has schema version {row.value}, newer than this tdof20's "
+        if c.dialect.name == "postgresql":
+            c.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": PG_LOCK})
+        tables = set(inspect(c).get_table_names())
+        version = None
+        if "meta" in tables:
+            row = c.execute(select(meta.c.value).where(meta.c.key == "schema_version")).first()
+            version = None if row is None else int(row.value)
+        if version is not None and version > SCHEMA_VERSION:
+            raise TdofError(f"the database has schema version {version}, newer than this tdof20's "
                             f"{SCHEMA_VERSION}: upgrade tdof20")
+        current = MigrationContext.configure(c).get_current_revision()
+        if current == head:
+            return
+        cfg.attributes["connection"] = c
+        try:
+            if current is None and version == 1:
+                command.stamp(cfg, "0001")  # the first server's schema (made before migrations)
+            elif current is None and tables - {"alembic_version"}:
+                raise TdofError(f"the database holds tables ({', '.join(sorted(tables)[:5])}) but no schema "
+                                "version: not a tdof20 server database")
+            command.upgrade(cfg, "head")
+        except CommandError as e:  # a revision this tdof20 does not know: a newer one
+            raise TdofError(f"the database's schema ({current}) is unknown to this tdof20 (newest {head}): "
+                            f"upgrade tdof20 ({e})") from None
 
 
 @dataclass
@@ -188,5 +231,6 @@ def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | N
         return True
 
 
-__all__ = ["Claim", "MAX_ATTEMPTS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat", "init_db", "jobs",
+__all__ = ["Claim", "MAX_ATTEMPTS", "MIGRATIONS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat", "init_db",
+           "jobs",
            "make_engine", "meta", "metadata", "sessions", "submissions", "users"]

@@ -1,7 +1,9 @@
 """The file store: DATA/submissions/<uid>.csv and DATA/results/<uid>/ (plots). An upload is
 copied in bounded chunks to a temp file in DATA/tmp/ (its size and longest line checked as it
 comes), fsynced, and renamed to its final name — a name the server makes, never the uploaded
-one — so nothing is written outside the store and a half-written file is never taken as stored."""
+one — so nothing is written outside the store and a half-written file is never taken as stored.
+A temp file is named after its host and process; a server starting removes the temp files of
+this host's processes that are gone (an upload cut by a crash or a kill -9), never a live one's."""
 
 from __future__ import annotations
 
@@ -9,11 +11,14 @@ import errno
 import hashlib
 import os
 import secrets
+import socket
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
 CHUNK = 1 << 20
+FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # no room: the disk, a quota, a file size limit
+FULL = "the server's disk is full: the submission was not stored; try later"
 
 
 class Refused(Exception):
@@ -39,6 +44,17 @@ class Store:
         self.root = Path(root)
         for sub in ("submissions", "results", "tmp"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self.host = socket.gethostname().replace(".", "_")[:64]
+
+    def remove_stale_uploads(self) -> int:
+        """Remove this host's temp files whose process is gone; returns how many."""
+        n = 0
+        for f in (self.root / "tmp").glob(f"{self.host}.*.*.part"):
+            pid = f.name[len(self.host) + 1:].split(".", 1)[0]
+            if pid.isdigit() and not _alive(int(pid)):
+                f.unlink(missing_ok=True)
+                n += 1
+        return n
 
     def submission_path(self, stored: str) -> Path:
         return self.root / "submissions" / stored
@@ -49,7 +65,7 @@ class Store:
     def receive(self, src: BinaryIO, max_bytes: int, max_line: int) -> Stored:
         """Copy ``src`` into tmp/ in chunks: refused (413) beyond ``max_bytes`` or a line longer than
         ``max_line``, (507) when the disk is full; the temp file goes on any refusal."""
-        tmp = self.root / "tmp" / f"{secrets.token_hex(16)}.part"
+        tmp = self.root / "tmp" / f"{self.host}.{os.getpid()}.{secrets.token_hex(16)}.part"
         h = hashlib.sha256()
         size = line = 0
         try:
@@ -73,8 +89,8 @@ class Store:
                 os.fsync(f.fileno())
         except OSError as e:
             tmp.unlink(missing_ok=True)
-            if e.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise Refused(507, "the server's disk is full: the submission was not stored; try later") from None
+            if e.errno in FULL_ERRNOS:
+                raise Refused(507, FULL) from None
             raise
         except BaseException:
             tmp.unlink(missing_ok=True)
@@ -91,4 +107,14 @@ class Store:
             os.close(fd)
 
 
-__all__ = ["Refused", "Store", "Stored"]
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+__all__ = ["FULL", "FULL_ERRNOS", "Refused", "Store", "Stored"]

@@ -11,11 +11,12 @@ from dataclasses import dataclass, field
 from typing import BinaryIO
 
 from sqlalchemy import Engine, and_, func, insert, select, update
+from sqlalchemy.exc import OperationalError
 
 from tdof20.errors import TdofError
 from tdof20.server.db import jobs, submissions, users
 from tdof20.server.facts import DatasetFacts
-from tdof20.server.store import Refused, Store
+from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
 
 TEXT_FIELDS = {"method": 100, "description": 4000, "authors": 1000, "hardware": 500, "time_per_image": 100,
                "training_data": 1000}
@@ -29,6 +30,7 @@ class Fields:
 
     method: str
     split: str
+    part: str = "test"  # or "val": the protocol's validation part (per-image errors shown)
     description: str = ""
     authors: str = ""
     hardware: str = ""
@@ -65,6 +67,9 @@ def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: B
     fields.checked()
     if fields.split not in facts.splits:
         raise Refused(400, f"split must be one of {', '.join(facts.splits)}")
+    if fields.part not in facts.parts(fields.split):
+        raise Refused(400, f"part must be one of {', '.join(facts.parts(fields.split))} for {fields.split} "
+                           "(val: the protocol's validation part, where this server has one)")
     with engine.begin() as c:
         n = c.execute(select(func.count()).select_from(submissions).where(and_(
             submissions.c.user_id == user["id"], submissions.c.created > time.time() - 86400))).scalar_one()
@@ -73,7 +78,7 @@ def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: B
     got = store.receive(src, max_bytes, max_line)
     try:
         try:
-            res = facts.check(got.path, fields.split)
+            res = facts.check(got.path, fields.split, fields.part)
         except TdofError as e:
             raise Refused(400, _message(e)) from None
         uid = secrets.token_hex(8)
@@ -83,14 +88,16 @@ def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: B
         try:
             with engine.begin() as c:
                 sid = c.execute(insert(submissions).values(
-                    uid=uid, user_id=user["id"], method=fields.method.strip(), split=fields.split,
+                    uid=uid, user_id=user["id"], method=fields.method.strip(), split=fields.split, part=fields.part,
                     description=fields.description, authors=fields.authors, hardware=fields.hardware,
                     time_per_image=fields.time_per_image, training_data=fields.training_data, public=fields.public,
                     filename=(filename or "results.csv")[-255:], stored=name, size=got.size, sha256=got.sha256,
                     n_rows=len(res), status="queued", created=now, scored_count=0)).inserted_primary_key[0]
                 c.execute(insert(jobs).values(submission_id=sid, state="queued", attempts=0, stage="queued"))
-        except BaseException:
+        except BaseException as e:  # not committed: its file goes too
             store.submission_path(name).unlink(missing_ok=True)
+            if _disk_full(e):
+                raise Refused(507, FULL) from None
             raise
     finally:
         got.path.unlink(missing_ok=True)
@@ -99,14 +106,27 @@ def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: B
     return out
 
 
+def _disk_full(e: BaseException) -> bool:
+    """Whether a failed commit ran out of room (SQLite: SQLITE_FULL; PostgreSQL: SQLSTATE 53100)."""
+    if isinstance(e, OSError):
+        return e.errno in FULL_ERRNOS
+    if isinstance(e, OperationalError):
+        orig = e.orig
+        return ("database or disk is full" in str(orig) or getattr(orig, "sqlstate", None) == "53100"
+                or getattr(orig, "sqlite_errorname", None) == "SQLITE_FULL")
+    return False
+
+
 def _row_dict(r, owner: bool) -> dict:
-    d = {k: r._mapping[k] for k in ("uid", "method", "split", "description", "authors", "hardware",
+    d = {k: r._mapping[k] for k in ("uid", "method", "split", "part", "description", "authors", "hardware",
                                     "time_per_image", "training_data", "public", "status", "created", "scored")}
     d["user"] = r.user
     if owner:
         d.update(filename=r.filename, n_rows=r.n_rows, size=r.size, sha256=r.sha256, error=r.error,
                  stage=r.stage, attempts=r.attempts)
     d["result"] = json.loads(r.result) if r.result and r.status == "done" else None
+    if d["result"] is not None and r.part != "val":
+        d["result"].pop("per_image", None)  # (a test result never has any: a second guard)
     return d
 
 
@@ -146,11 +166,13 @@ def withdraw(engine: Engine, uid: str, user: dict) -> dict:
 
 
 def leaderboard(engine: Engine, split: str, metric: str = "add_s") -> list[dict]:
-    """The public, scored submissions of a protocol, best first by the mean over objects of ``metric``."""
+    """The public, scored submissions on a protocol's test part, best first by the mean over objects
+    of ``metric`` (validation submissions are not ranked)."""
     if metric not in LEADERBOARD_METRICS:
         raise Refused(400, f"metric must be one of {', '.join(LEADERBOARD_METRICS)}")
     with engine.begin() as c:
-        rows = c.execute(_query().where(and_(submissions.c.split == split, submissions.c.public.is_(True),
+        rows = c.execute(_query().where(and_(submissions.c.split == split, submissions.c.part == "test",
+                                             submissions.c.public.is_(True),
                                              submissions.c.status == "done")))
         out = [_row_dict(r, False) for r in rows]
     for d in out:

@@ -3,26 +3,68 @@
 the result — only while the claim is still this worker's (:func:`tdof20.server.db.finish_job`).
 A thread renews the lease while the scorer runs; a worker killed mid-score leaves a lease that
 expires, and another worker (or this one restarted) scores the submission again from its file.
-Any number of workers may run, here or on machines sharing the database and the store."""
+Any number of workers may run, here or on machines sharing the database and the store.
+
+A submission on a protocol's validation part (``part`` val) is scored against the validation
+targets (:func:`tdof20.server.facts.validation_targets`: no test image among them) and gets, besides
+the summary, each image's errors per object (``per_image``), from the same scorer run on that
+image's targets alone. A test submission never gets per-image data."""
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import sys
+import tempfile
 import threading
 import time
+from collections import defaultdict
+from pathlib import Path
 
 from sqlalchemy import Engine, select
 
+from tdof20.dataset.results import read_results
 from tdof20.errors import TdofError
+from tdof20.formats import write_json
 from tdof20.scoring import evaluate
 from tdof20.scoring import report
+from tdof20.scoring.dataset_view import DatasetView
 from tdof20.server.config import ServerConfig
 from tdof20.server.db import Claim, claim_job, finish_job, heartbeat, init_db, make_engine, submissions
+from tdof20.server.facts import validation_targets
 from tdof20.server.store import Store
 
 FAILED = "scoring failed; the server's operators have the details"
+PER_IMAGE_METRICS = "add,proj"  # per image: the errors a researcher reads (mm, px)
+
+
+def _finite(x: float) -> float | None:
+    return round(float(x), 4) if math.isfinite(x) else None  # inf: no estimate for the target
+
+
+def per_image_errors(results: Path, root: Path, targets: list[dict], lease) -> list[dict]:
+    """Each validation image's errors per object instance, from the scorer run on that image's
+    targets alone: [{"scene_id", "im_id", "obj_id", "add_mm", "adds_mm", "add_s_ok", "proj_px"}].
+    ``lease()`` is called between images (the worker's heartbeat)."""
+    res = read_results(results)
+    ds = DatasetView(root)
+    by_image: dict[tuple[int, int], list[dict]] = defaultdict(list)
+    for t in targets:
+        by_image[(int(t["scene_id"]), int(t["im_id"]))].append(t)
+    out = []
+    with tempfile.TemporaryDirectory(prefix="tdof20-val-") as tmp:
+        path = Path(tmp) / "targets.json"
+        for (sid, im), tg in sorted(by_image.items()):
+            write_json(path, tg, indent=None)
+            ev = evaluate(res, root, None, path, dataset=ds, metrics=PER_IMAGE_METRICS)
+            for ob, o in ev.objects.items():
+                for k in range(o.n):
+                    out.append({"scene_id": sid, "im_id": im, "obj_id": int(ob), "add_mm": _finite(o.add[k]),
+                                "adds_mm": _finite(o.adds[k]), "add_s_ok": bool(o.add_s_ok[k]),
+                                "proj_px": _finite(o.proj[k])})
+            lease()
+    return out
 
 
 def _renew(engine: Engine, claim: Claim, lease_s: float, stop: threading.Event) -> None:
@@ -44,14 +86,25 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
             time.sleep(pause_s)
         result, error = None, None
         try:
-            ev = evaluate(store.submission_path(sub.stored), cfg.dataset, sub.split)
+            out = store.results_dir(sub.uid)
+            path = store.submission_path(sub.stored)
+            if sub.part == "val":
+                targets = validation_targets(cfg.dataset, sub.split)
+                out.mkdir(parents=True, exist_ok=True)
+                write_json(out / "val_targets.json", targets, indent=None)
+                ev = evaluate(path, cfg.dataset, None, out / "val_targets.json")
+            else:
+                ev = evaluate(path, cfg.dataset, sub.split)
             ev.method = sub.method
             heartbeat(engine, claim, cfg.lease_s, "plots")
-            out = store.results_dir(sub.uid)
             plots = [p.name for p in report.write_plots([ev], out)]
             result = {"summary": ev.summary(), "plots": plots, "warnings": list(ev.warnings),
                       "object_names": {str(k): report.object_name(k, [ev]) for k in ev.objects},
                       "scene_names": {str(k): v for k, v in ev.scene_labels.items()}}
+            if sub.part == "val":
+                heartbeat(engine, claim, cfg.lease_s, "per-image errors")
+                result["per_image"] = per_image_errors(path, cfg.dataset, targets,
+                                                       lambda: heartbeat(engine, claim, cfg.lease_s))
         except TdofError as e:
             print(f"worker: submission {sub.uid}: {e}", file=sys.stderr)
             error = FAILED
