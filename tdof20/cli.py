@@ -652,10 +652,13 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
                     plots: Optional[Path] = typer.Option(None, "--plots", help="folder for the accuracy curves and report.md"),
                     metrics: Optional[str] = typer.Option(None, "--metrics", help="comma-separated: add,proj,vsd,mssd,mspd,ar "
                                                           "(default: add,proj,mssd,mspd, plus vsd,ar when the dataset has depth)"),
+                    proj_px: Optional[float] = typer.Option(None, "--proj-px", help="2D projection threshold in "
+                                                            "pixels (default: 5 px at 640 pixels wide, scaled with the "
+                                                            "image width)"),
                     part: str = typer.Option("test", "--part", help="test, or val: the targets of the --split's "
                                              "validation part (written to ROOT/.cache/val_targets_<split>.json)")
                     ) -> None:
-    """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px, AUC, and BOP19's VSD, MSSD,
+    """Score results: ADD(-S) at 10 % of the diameter, 2D projection at 5 px per 640 pixels of width, AUC, and BOP19's VSD, MSSD,
     MSPD and AR; per object, per scene and mean."""
     if part not in ("test", "val"):
         raise TdofError(f"--part must be test or val, got '{part}'")
@@ -663,7 +666,7 @@ def benchmark_score(results: list[Path] = typer.Argument(..., help="results CSV 
         if split is None or targets is not None:
             raise TdofError("--part val scores against the validation targets of --split: give --split, not --targets")
         split, targets = None, write_val_targets(dataset, split)
-    out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics), highlight=False, markup=False)
+    out_console.print(score_command(results, dataset, split, targets, json_out, plots, metrics, proj_px), highlight=False, markup=False)
 
 
 @benchmark_app.command("profile")

@@ -457,7 +457,7 @@ def test_metrics_selection_and_report(bop_dataset, tmp_path):
     text = score_command([csv], root, "hard", None, js, plots)
     assert "Table 3 - BOP average recall" in text and "per scene" in text and "AR MSPD" in text
     data = json.loads(js.read_text())
-    assert set(data) == {"objects", "mean", "all", "scenes"} and "ar" in data["all"]
+    assert set(data) == {"objects", "mean", "all", "scenes", "proj_px"} and "ar" in data["all"]
     assert (plots / "recall_bop.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Table 3" in (plots / "report.md").read_text()
     ev = evaluate(rows, root, split="hard", metrics="vsd")

@@ -24,7 +24,7 @@ from tdof20.objects import export_models, get_object
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 OBJS = (1, 7, 17)  # cube_136 (4-fold symmetry), handle_cup_280 (asymmetric), water_cup_270 (continuous)
 KEYS = {"n", "add", "adds", "add_s", "proj2d", "auc_adds", "auc_add_s", "ar_mssd", "ar_mspd"}  # no depth: no VSD, AR
-PARTS = {"objects", "mean", "all", "scenes"}
+PARTS = {"objects", "mean", "all", "scenes", "proj_px"}  # proj_px: the 2D projection threshold used
 
 
 def rot(axis, deg) -> np.ndarray:

@@ -22,14 +22,26 @@ def greedy_count(E: np.ndarray, th: float) -> int:
     """BOP19 matching of one (image, object): the estimates (rows of E, by decreasing score) each
     take the unmatched ground-truth instance (column) with the smallest error below ``th``
     (strict; ties: the first). Returns the number matched."""
-    taken = np.zeros(E.shape[1], bool)
-    m = 0
-    for row in E:
-        cand = ~taken & (row < th)
-        if cand.any():
-            taken[int(np.argmin(np.where(cand, row, np.inf)))] = True
-            m += 1
-    return m
+    return int(greedy_counts(np.asarray(E, np.float64)[:, :, None], np.array([th]))[0, 0])
+
+
+def greedy_counts(E: np.ndarray, th: np.ndarray) -> np.ndarray:
+    """:func:`greedy_count` for every error kind (E (n_est, n_gt, T): e.g. VSD's taus) and every
+    threshold (J,) at once: (T, J) counts. The estimates are taken in turn (rows); the T x J
+    matchings run side by side."""
+    _, n_gt, T = E.shape
+    J = len(th)
+    taken = np.zeros((T, J, n_gt), bool)
+    count = np.zeros((T, J), np.int64)
+    for row in E:  # (n_gt, T)
+        err = np.broadcast_to(row.T[:, None, :], (T, J, n_gt))
+        cand = ~taken & (err < th[None, :, None])
+        got = cand.any(axis=2)
+        pick = np.argmin(np.where(cand, err, np.inf), axis=2)  # ties: the first
+        ti, ji = np.nonzero(got)
+        taken[ti, ji, pick[ti, ji]] = True
+        count += got
+    return count
 
 
 def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: dict, timings: dict) -> dict:
@@ -124,17 +136,23 @@ def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: d
             out[int(ob)][m][slot] = E[pi][..., None] < th
         for k in np.flatnonzero(~one):
             ob, p0, ne, ng, slot = (int(x) for x in blocks_a[k])
-            blk = E[p0:p0 + ne * ng]
+            blk = E[p0:p0 + ne * ng].reshape(ne, ng, -1)  # (estimates, instances, taus or 1)
+            cnt = greedy_counts(blk, th)
+            # the first cnt of the target's slots are matched
+            hit = np.arange(cnt.max(initial=0))[:, None, None] < cnt[None]
+            dst = out[ob][m]
             if m == "vsd":
-                blk = blk.reshape(ne, ng, -1)
-                for ti in range(blk.shape[2]):
-                    for j, t in enumerate(th):
-                        out[ob][m][slot:slot + greedy_count(blk[:, :, ti], t), ti, j] = True
+                dst[slot:slot + len(hit)] |= hit
             else:
-                blk = blk.reshape(ne, ng)
-                for j, t in enumerate(th):
-                    out[ob][m][slot:slot + greedy_count(blk, t), j] = True
+                dst[slot:slot + len(hit)] |= hit[:, 0]
     return out
+
+
+def _depth_for_vsd(raw: np.ndarray, scale: float) -> np.ndarray:
+    """The test depth VSD samples: the PNG's uint16 values as they are where depth_scale is 1 (VSD
+    turns the sampled values into float64 exactly as it would the float32 mm image, so no
+    full-image conversion is needed), else the float32 mm image (:meth:`DatasetView.depth_mm`)."""
+    return raw if scale == 1.0 else raw.astype(np.float32) * np.float32(scale)
 
 
 def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings,
@@ -152,7 +170,7 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
 
     def load(ch):
         tic = _time.perf_counter()
-        imgs = [ds.depth_mm(int(ims[i] >> 32), int(ims[i] & 0xFFFFFFFF)) for i in ch]
+        imgs = [_depth_for_vsd(*ds.depth_raw(int(ims[i] >> 32), int(ims[i] & 0xFFFFFFFF))) for i in ch]
         t_read[0] += _time.perf_counter() - tic
         return imgs
 
@@ -166,7 +184,7 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
             nxt = reader.submit(load, chunks[ci + 1]) if ci + 1 < len(chunks) else None
             for shp in {im.shape for im in imgs}:  # one image size per stack
                 local = [k for k, im in enumerate(imgs) if im.shape == shp]
-                stack = np.stack([imgs[k] for k in local])
+                stack = [imgs[k] for k in local]  # sampled where the footprints are: no copy
                 sel = np.concatenate([order[bounds[ch[k]]:bounds[ch[k] + 1]] for k in local])
                 img_of = np.concatenate([np.full(bounds[ch[k] + 1] - bounds[ch[k]], j) for j, k in enumerate(local)])
                 for ob in np.unique(p_obj[sel]):
@@ -180,4 +198,4 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
     return out
 
 
-__all__ = ["bop_matches", "greedy_count", "vsd_errors"]
+__all__ = ["bop_matches", "greedy_count", "greedy_counts", "vsd_errors"]

@@ -170,12 +170,17 @@ class DatasetView:
 
     def depth_mm(self, scene_id: int, im_id: int) -> np.ndarray:
         """(H,W) float32 depth in mm of a test image (depth/ PNG x depth_scale; 0 = no depth)."""
+        d, sc = self.depth_raw(scene_id, im_id)
+        return d.astype(np.float32) * np.float32(sc)
+
+    def depth_raw(self, scene_id: int, im_id: int) -> tuple[np.ndarray, float]:
+        """(the depth/ PNG's (H,W) uint16 values, depth_scale in mm per unit, checked): depth in mm
+        is their float32 product, which callers sampling a few pixels form only for those."""
         sc = self.scene(scene_id).depth_scale.get(im_id, 1.0)
         if isinstance(sc, bool) or not isinstance(sc, (int, float)) or not sc > 0:
             raise TdofError(f"image {im_id}: depth_scale must be a number > 0, got {sc!r}",
                             self.scene_dir(scene_id) / "scene_camera.json")
-        d = read_png(self.depth_path(scene_id, im_id), kind="depth")
-        return d.astype(np.float32) * np.float32(sc)
+        return read_png(self.depth_path(scene_id, im_id), kind="depth"), float(sc)
 
     def image_width(self, scene_id: int) -> int:
         """Image width in pixels (MSPD scales by 640 / width): ROOT/camera.json's ``width``, else
@@ -196,7 +201,7 @@ class DatasetView:
                         w = png_header(pngs[0])[1]
                         break
             if w is None:
-                raise TdofError(f"MSPD needs the image width: camera.json has no 'width' and scene {scene_id} has no "
+                raise TdofError(f"MSPD and the 2D projection threshold need the image width: camera.json has no 'width' and scene {scene_id} has no "
                                 "rgb/ or depth/ images", self.root)
             self._extra[key] = w
         return self._extra[key]

@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 ADD_THRESHOLD = 0.1  # fraction of the diameter
-PROJ_THRESHOLD = 5.0  # pixels
+PROJ_THRESHOLD = 5.0  # pixels at PROJ_WIDTH: the paper's 2D projection threshold
+PROJ_WIDTH = 640  # pixels: the image width PROJ_THRESHOLD is for; other widths scale it
 PROJ_PLOT_MAX = 20.0  # pixels: the plots' range of 2D projection errors
 AUC_MAX = 100.0  # mm
 AUC_SE_TARGET = 1.25e-4  # standard error of each object's ADD-S AUC
@@ -25,6 +26,24 @@ METRIC_KEYS = {"add": ("add", "adds", "add_s", "auc_adds", "auc_add_s"), "proj":
                "mssd": ("ar_mssd",), "mspd": ("ar_mspd",), "ar": ("ar",)}
 ALL_KEYS = KEYS + BOP_KEYS
 THREADS = min(2, os.cpu_count() or 1)  # objects scored in parallel
+
+
+def proj_threshold(width: int, proj_px: float | None = None) -> float:
+    """The 2D projection threshold (px) on images ``width`` pixels wide: ``proj_px`` when given,
+    else the paper's 5 px at 640 pixels wide scaled with the width (5 * width / 640), so that a
+    threshold means the same share of the image at any resolution (5 px at 160 pixels would be 20
+    px at 640)."""
+    if proj_px is not None:
+        return float(proj_px)
+    return PROJ_THRESHOLD * float(width) / PROJ_WIDTH
+
+
+def format_px(px: Any) -> str:
+    """The threshold(s) of :attr:`Evaluation.proj_px` as text: "3.75", or "2.5-5" when scenes differ."""
+    if isinstance(px, dict):
+        vals = sorted(set(px.values()))
+        return f"{vals[0]:g}-{vals[-1]:g}" if len(vals) > 1 else f"{vals[0]:g}"
+    return "?" if px is None else f"{px:g}"
 
 
 @dataclass
@@ -108,6 +127,8 @@ class Evaluation:
     keys: tuple = KEYS  # "n" and the metric keys computed, in report order
     scene_labels: dict = field(default_factory=dict)  # scene id -> its name ("multi/08")
     object_labels: dict = field(default_factory=dict)  # obj_id -> the dataset's name for it
+    # the 2D projection threshold used (px): one number, or {"<scene_id>": px} where image widths differ
+    proj_px: Any = None
 
     def summary(self) -> dict[str, Any]:
         """{"objects": {"<obj_id>": {...}}, "mean": {...} (over objects), "all": {...} (pooled over
@@ -128,6 +149,8 @@ class Evaluation:
             n = sum(p["n"] for p in parts)
             scenes[str(sid)] = {"n": n, **{k: float(sum(p[k] * p["n"] for p in parts) / n) for k in keys[1:]}}
         out = {"objects": objs, "mean": mean, "all": allv, "scenes": scenes}
+        if "proj2d" in keys and self.proj_px is not None:
+            out["proj_px"] = self.proj_px
         return _rounded(out)
 
 
@@ -139,4 +162,5 @@ def _rounded(d: Any) -> Any:
 
 
 __all__ = ["ADD_THRESHOLD", "ALL_KEYS", "AUC_MAX", "AUC_SE_TARGET", "BOP_KEYS", "Evaluation", "KEYS", "METRICS",
-           "METRIC_KEYS", "ObjectEval", "PROJ_PLOT_MAX", "PROJ_THRESHOLD", "THREADS", "VISIB_MIN"]
+           "METRIC_KEYS", "ObjectEval", "PROJ_PLOT_MAX", "PROJ_THRESHOLD", "PROJ_WIDTH", "THREADS", "VISIB_MIN",
+           "format_px", "proj_threshold"]

@@ -17,17 +17,30 @@ from typing import Sequence
 import numpy as np
 
 from tdof20.scoring import metrics as M
-from tdof20.scoring.evaluation import ADD_THRESHOLD, AUC_MAX, PROJ_THRESHOLD, Evaluation
+from tdof20.scoring.evaluation import ADD_THRESHOLD, AUC_MAX, PROJ_THRESHOLD, Evaluation, format_px
 
 TABLES = {
     "add_s": f"Table 1 - ADD(S) accuracy (%): mean model-point distance < {ADD_THRESHOLD:.0%} of the diameter "
              f"(closest point for symmetric objects)",
-    "proj2d": f"Table 2 - 2D projection accuracy (%): mean reprojection distance < {PROJ_THRESHOLD:g} px",
+    "proj2d": "Table 2 - 2D projection accuracy (%): mean reprojection distance < {px} px",
     "ar": "Table 3 - BOP average recall AR (%): the mean of AR_VSD, AR_MSSD and AR_MSPD (BOP19)",
 }
 METRIC_LABELS = {"add": "ADD", "adds": "ADD-S", "add_s": "ADD(S)", "proj2d": "2D proj", "auc_adds": "AUC ADD-S",
                  "auc_add_s": "AUC ADD(S)", "ar_vsd": "AR VSD", "ar_mssd": "AR MSSD", "ar_mspd": "AR MSPD",
                  "ar": "AR"}
+
+
+def proj_px_text(evals: Sequence[Evaluation]) -> str:
+    """The 2D projection threshold(s) the evaluations used, as text ("0.75", "5", "2.5-5")."""
+    pxs = list(dict.fromkeys(format_px(getattr(e, "proj_px", None)) for e in evals
+                             if getattr(e, "proj_px", None) is not None))
+    return "/".join(pxs) if pxs else f"{PROJ_THRESHOLD:g}"
+
+
+def title_of(evals: Sequence[Evaluation], key: str) -> str:
+    """The table title of ``key`` (Table 2 names the 2D projection threshold used)."""
+    t = TABLES.get(key, METRIC_LABELS.get(key, key))
+    return t.format(px=proj_px_text(evals)) if key == "proj2d" else t
 
 
 def counted(n: int, word: str) -> str:
@@ -94,7 +107,7 @@ def table_text(evals: Sequence[Evaluation], key: str = "add_s", title: str | Non
     labels = [f"{lab} *" if asym else lab for lab, asym, _ in rows]
     w0 = max([len("object")] + [len(x) for x in labels])
     ws = [max(7, len(n)) for n in names]
-    out = [title or TABLES.get(key, METRIC_LABELS.get(key, key))]
+    out = [title or title_of(evals, key)]
     out.append("object".ljust(w0) + "".join("  " + n.rjust(w) for n, w in zip(names, ws)))
     out.append("-" * (w0 + sum(w + 2 for w in ws)))
     for k, (lab, (_, _, vals)) in enumerate(zip(labels, rows)):
@@ -113,7 +126,7 @@ def table_markdown(evals: Sequence[Evaluation], key: str = "add_s", title: str |
     methods the best value of each row bold."""
     rows, _ = _rows(evals, key)
     names = method_names(evals)
-    out = [f"**{title or TABLES.get(key, METRIC_LABELS.get(key, key))}**", "",
+    out = [f"**{title or title_of(evals, key)}**", "",
            "| object | " + " | ".join(names) + " |", "| --- |" + " ---: |" * len(names)]
     for lab, asym, vals in rows:
         finite = [v for v in vals if v is not None]
@@ -225,8 +238,10 @@ def write_plots(evals: Sequence[Evaluation], out_dir: str | Path) -> list[Path]:
             ("accuracy_adds_mm.png", "ADD-S accuracy (area = AUC)", "threshold (mm)", np.linspace(0, AUC_MAX, 401),
              lambda o: o.adds, None)]
     if "proj2d" in have:
+        px = [getattr(e, "proj_px", None) for e in evals]
+        mark = px[0] if px and isinstance(px[0], float) and all(p == px[0] for p in px) else None
         specs.append(("accuracy_proj2d.png", "2D projection accuracy", "threshold (px)", np.linspace(0, 20, 401),
-                      lambda o: o.proj, PROJ_THRESHOLD))
+                      lambda o: o.proj, mark))
     paths = []
     import io
 

@@ -36,7 +36,7 @@ from tdof20.scoring import metrics as M
 from tdof20.scoring.bop19 import bop_matches
 from tdof20.scoring.dataset_view import DatasetView, Targets, load_targets, require_targets, targets_path
 from tdof20.scoring.evaluation import (ADD_THRESHOLD, ALL_KEYS, AUC_MAX, AUC_SE_TARGET, BOP_KEYS, METRIC_KEYS, METRICS,
-                                       PROJ_PLOT_MAX, PROJ_THRESHOLD, THREADS, Evaluation, ObjectEval)
+                                       PROJ_PLOT_MAX, PROJ_THRESHOLD, THREADS, Evaluation, ObjectEval, proj_threshold)
 
 
 def _as_results(results: Any) -> Results:
@@ -141,6 +141,10 @@ def adds_values(model: M.ModelPoints, A: np.ndarray, b: np.ndarray, thr: float, 
 
 def evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: list, n_missing: int,
                      do_add: bool = True, do_proj: bool = True) -> ObjectEval:
+    """One object's targets: ``single`` {"Re", "te", "Rg", "tg", "K", ["pthr"]} (one estimate, one
+    instance each), ``multi`` [{"ests", "gts", "K", "count", ["pthr"]}], ``n_missing`` targets
+    without an estimate. "pthr": the 2D projection threshold (px) per single target / of the group
+    (default :data:`PROJ_THRESHOLD`)."""
     if not (do_add and do_proj):  # what is not asked for is not computed (nan; not reported)
         full = evaluate_object(model, obj_id, single, multi, n_missing) if (do_add or do_proj) else None
         n = len(single["Re"]) + sum(g["count"] for g in multi) + n_missing
@@ -154,6 +158,7 @@ def evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: list
         return full
     thr = ADD_THRESHOLD * model.diameter
     Re, te, Rg, tg, K = (single[k] for k in ("Re", "te", "Rg", "tg", "K"))
+    pthr = np.broadcast_to(np.asarray(single.get("pthr", PROJ_THRESHOLD), np.float64), (len(Re),))
     tic = _time.perf_counter()
     add_v, add_err = M.add_fast_with_error(model, Re, te, Rg, tg, thr)
     t_add = _time.perf_counter() - tic
@@ -165,10 +170,10 @@ def evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: list
     if near.any():
         proj_v[near] = np.clip(M.proj2d_fast(model, Re[near], te[near], Rg[near], tg[near], K[near], sample=True),
                                pb.lo[near], pb.hi[near])
-    amb = (pb.lo < PROJ_THRESHOLD) & (pb.hi >= PROJ_THRESHOLD)
+    amb = (pb.lo < pthr) & (pb.hi >= pthr)
     if amb.any():
-        proj_v[amb] = M.proj2d_fast(model, Re[amb], te[amb], Rg[amb], tg[amb], K[amb], PROJ_THRESHOLD)
-    proj_ok = proj_v < PROJ_THRESHOLD  # exact: decided by the bounds or by the exact error
+        proj_v[amb] = M.proj2d_fast(model, Re[amb], te[amb], Rg[amb], tg[amb], K[amb], pthr[amb])
+    proj_ok = proj_v < pthr  # exact: decided by the bounds or by the exact error
     t_proj = _time.perf_counter() - tic - t_add
     A, b = M.relative_transform(Re, te, Rg, tg) if len(Re) else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     n_targets = len(Re) + n_missing + sum(g["count"] for g in multi)
@@ -187,7 +192,7 @@ def evaluate_object(model: M.ModelPoints, obj_id: int, single: dict, multi: list
                 errs["adds"][:, j] = M.adds_batch(Rs, ts, Rj, tj, model.pts, model.tree)
                 errs["proj"][:, j] = M.proj2d_batch(Rs, ts, Rj, tj, model.pts, K1)
         for k, out_v, out_ok, lim in (("add", add_l, add_okl, thr), ("adds", adds_l, adds_okl, thr),
-                                      ("proj", proj_l, proj_okl, PROJ_THRESHOLD)):
+                                      ("proj", proj_l, proj_okl, float(g.get("pthr", PROJ_THRESHOLD)))):
             taken: set[int] = set()
             vals = []
             for i in range(len(ests)):
@@ -269,10 +274,13 @@ def resolve_metrics(metrics: Any, ds: DatasetView, tg: Targets) -> tuple[tuple[s
 
 def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
              targets: str | Path | None = None, dataset: DatasetView | None = None,
-             metrics: Any = None) -> Evaluation:
+             metrics: Any = None, proj_px: float | None = None) -> Evaluation:
     """Everything :func:`score` computes, with the per-target errors (for reports and plots).
     ``metrics``: None (the default set, see :func:`resolve_metrics`) or names from
-    :data:`METRICS` ("add,proj,vsd,mssd,mspd,ar" or a list)."""
+    :data:`METRICS` ("add,proj,vsd,mssd,mspd,ar" or a list). ``proj_px``: the 2D projection
+    threshold in pixels (default: 5 px at 640 pixels wide, scaled with each scene's image width,
+    :func:`~tdof20.scoring.evaluation.proj_threshold`)."""
+    proj_px = check_proj_px(proj_px)
     timings: dict[str, float] = {}
     t0 = _time.perf_counter()
     ds = dataset if dataset is not None else DatasetView(dataset_root, split)
@@ -324,6 +332,12 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     timings["match"] = _time.perf_counter() - t0 - timings["read"]
     do_add = any(k in keys for k in METRIC_KEYS["add"])
     do_proj = "proj2d" in keys
+    # the 2D projection threshold of each scene scored (its image width, unless proj_px is given)
+    pthr = {int(s): proj_threshold(0 if proj_px is not None else ds.image_width(int(s)), proj_px)
+            for s in np.unique(tg.scene_id)} if do_proj else {}
+    for po in per_obj.values():
+        for g in po["multi"]:
+            g["pthr"] = pthr.get(g["scene"], PROJ_THRESHOLD)
 
     def job(ob: int) -> ObjectEval:
         po = per_obj[ob]
@@ -333,7 +347,8 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
         single = {"Re": res.R[idx], "te": res.t[idx],
                   "Rg": np.array([x[1] for x in sg]).reshape(-1, 3, 3),
                   "tg": np.array([x[2] for x in sg]).reshape(-1, 3),
-                  "K": np.array([x[3] for x in sg]).reshape(-1, 3, 3)}
+                  "K": np.array([x[3] for x in sg]).reshape(-1, 3, 3),
+                  "pthr": np.array([pthr.get(x[4], PROJ_THRESHOLD) for x in sg], np.float64)}
         ev = evaluate_object(model, ob, single, po["multi"], po["missing"], do_add, do_proj)
         ev.scene = np.array([x[4] for x in sg] + [g["scene"] for g in po["multi"] for _ in range(g["count"])]
                             + po["missing_scenes"], dtype=np.int64)
@@ -364,8 +379,23 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     timings["total"] = _time.perf_counter() - t0
     labels = {int(sid): ds.scene_label(int(sid)) for sid in np.unique(tg.scene_id)}
     names = {int(ob): ds.object_name(int(ob)) for ob in objects}
-    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels, names)
+    px_used = sorted(set(pthr.values()))
+    proj_used = (px_used[0] if len(px_used) == 1 else {str(k): v for k, v in sorted(pthr.items())}) if px_used else None
+    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels, names, proj_used)
 
 
-__all__ = ["adds_values", "evaluate", "evaluate_object", "group_rows", "parse_metrics", "resolve_metrics",
+def check_proj_px(proj_px: Any) -> float | None:
+    """``proj_px`` (--proj-px) as a float > 0, or None (the default: scaled with the image width)."""
+    if proj_px is None:
+        return None
+    try:
+        v = float(proj_px)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if isinstance(proj_px, bool) or not (math.isfinite(v) and v > 0):
+        raise TdofError(f"--proj-px: the 2D projection threshold must be a number of pixels > 0, got {proj_px!r}")
+    return v
+
+
+__all__ = ["adds_values", "check_proj_px", "evaluate", "evaluate_object", "group_rows", "parse_metrics", "resolve_metrics",
            "vsd_unavailable"]

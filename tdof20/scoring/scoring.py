@@ -1,13 +1,14 @@
 """Score pose-estimation results against a tdof20 (BOP) dataset: exact accuracies, fast.
 
-``score(results, dataset_root, split=None, targets=None) -> dict`` gives, per object, averaged
+``score(results, dataset_root, split=None, targets=None, metrics=None, proj_px=None) -> dict`` gives, per object, averaged
 over objects ("mean") and pooled over targets ("all")::
 
     n          number of targets (in "mean": the number of objects averaged)
     add        ADD accuracy       mean distance of corresponding model points < 10% of the diameter
     adds       ADD-S accuracy     mean closest-point distance < 10% of the diameter
     add_s      ADD(S) accuracy    ADD-S for symmetric objects, ADD otherwise (the paper's ADD)
-    proj2d     2D projection accuracy, mean reprojection distance < 5 px
+    proj2d     2D projection accuracy, mean reprojection distance < 5 px at 640 pixels wide (5 * width / 640
+               px; ``proj_px`` sets it); the summary's "proj_px" is the threshold used
     auc_adds   AUC of ADD-S over 0-100 mm: mean over targets of max(0, 1 - e / 100 mm)
     auc_add_s  the same for ADD(S)
     ar_vsd     BOP19 average recall of VSD (10 taus 0.05-0.5 x 10 thresholds 0.05-0.5, delta 15 mm)
@@ -41,18 +42,20 @@ from tdof20.scoring import report
 from tdof20.scoring.dataset_view import DatasetView, Targets, load_targets, require_targets, targets_path
 from tdof20.scoring.evaluation import (ADD_THRESHOLD, ALL_KEYS, AUC_MAX, BOP_KEYS, KEYS, METRIC_KEYS, METRICS,
                                        PROJ_PLOT_MAX, PROJ_THRESHOLD, VISIB_MIN, Evaluation, ObjectEval)
-from tdof20.scoring.scorer import evaluate, parse_metrics, resolve_metrics, vsd_unavailable
+from tdof20.scoring.scorer import check_proj_px, evaluate, parse_metrics, resolve_metrics, vsd_unavailable
 
 
 def score(results: Any, dataset_root: str | Path, split: str | None = None,
-          targets: str | Path | None = None, metrics: Any = None) -> dict[str, Any]:
+          targets: str | Path | None = None, metrics: Any = None, proj_px: float | None = None) -> dict[str, Any]:
     """Score ``results`` (a BOP results CSV path, a :class:`Results`, or a list of
     (scene_id, im_id, obj_id, score, R, t, time) rows) on the dataset at ``dataset_root`` with the
     targets of ``split`` ('simple' | 'hard': ROOT/test_targets_{split}.json) or the ``targets``
-    file. ``metrics``: None (the default set) or names of :data:`METRICS`. Returns
+    file. ``metrics``: None (the default set) or names of :data:`METRICS`. ``proj_px``: the 2D
+    projection threshold in pixels (default 5 px at 640 pixels wide, scaled with the image width;
+    the summary's "proj_px" says which was used). Returns
     {"objects": {"<obj_id>": {...}}, "mean": {...}, "all": {...}, "scenes": {"<scene_id>": {...}}}
     (see the module docstring); accuracies, AUCs and average recalls are fractions in [0, 1]."""
-    return evaluate(results, dataset_root, split, targets, metrics=metrics).summary()
+    return evaluate(results, dataset_root, split, targets, metrics=metrics, proj_px=proj_px).summary()
 
 
 def run_info(results_csv: str | Path) -> dict | None:
@@ -82,27 +85,32 @@ def run_line(name: str, info: dict) -> str:
 
 
 def score_command(results: list[Path], dataset: Path, split: str | None, targets: Path | None,
-                  json_out: Path | None, plots: Path | None, metrics: str | None = None) -> str:
+                  json_out: Path | None, plots: Path | None, metrics: str | None = None,
+                  proj_px: float | None = None) -> str:
     """``tdof20 benchmark score RESULTS.csv... --dataset ROOT (--split S | --targets F) [--json OUT]
-    [--plots DIR] [--metrics add,proj,vsd,mssd,mspd,ar]``: score each results file, write the JSON
+    [--plots DIR] [--metrics add,proj,vsd,mssd,mspd,ar] [--proj-px PX]``: score each results file, write the JSON
     (one file: its summary; several: {"<method>": summary, ...}) and the plots plus ``report.md``
     (Markdown tables) in DIR, and return the text to print: Tables 1-3 (those computed), every
     metric per method and per scene, warnings and timings."""
     if not results:
         raise TdofError("give at least one results file")
-    parse_metrics(metrics)  # a bad --metrics is refused before anything is read
+    parse_metrics(metrics)  # a bad --metrics or --proj-px is refused before anything is read
+    proj_px = check_proj_px(proj_px)
     if json_out is not None:
         check_output_file(json_out, "--json", "JSON file")
     if plots is not None:
         check_output_dir(plots, "--plots", "folder for the plots and report.md")
     ds = DatasetView(dataset, split)
     tpath = targets_path(ds.root, split, targets, ds)
-    evals = [evaluate(r, ds.root, split, targets, dataset=ds, metrics=metrics) for r in results]
+    evals = [evaluate(r, ds.root, split, targets, dataset=ds, metrics=metrics, proj_px=proj_px) for r in results]
     names = report.method_names(evals)
     n_targets = max((e.summary()["all"]["n"] for e in evals), default=0)
     head = f"dataset {ds.root}  targets {tpath.name} ({n_targets} target instances)"
     parts = [head, "", report.report_text(evals)]
     notes = []
+    if any("proj2d" in e.keys for e in evals):
+        how = "--proj-px" if proj_px is not None else "5 px at 640 pixels wide, scaled with the image width"
+        notes.append(f"2D projection threshold: {report.proj_px_text(evals)} px ({how}; \"proj_px\" in the JSON)")
     infos = [run_info(r) for r in results]
     for name, info in zip(names, infos):
         if info is not None:
