@@ -7,6 +7,13 @@ pipeline, the simulator's renderer and oracle labels) are imported inside their 
 
 from __future__ import annotations
 
+import os
+
+# torch's OpenMP (libgomp) spin-waits at each barrier unless told otherwise, read once when torch
+# loads: on shared cores a training step took 6-10x the CPU and wall time
+# (benchmarks/train_throughput.py --wait-policy)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import json
 import re
 import shlex

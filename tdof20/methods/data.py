@@ -187,6 +187,8 @@ def fill_depth_holes(depth_mm: torch.Tensor, iterations: int = 8, kernel: int = 
         s = F.avg_pool2d(d * valid, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
         c = F.avg_pool2d(valid, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
         fill = (valid == 0) & (c > 0)
+        if not bool(fill.any()):  # nothing left to fill: the remaining passes would change nothing
+            break
         d = torch.where(fill, s / c.clamp_min(1e-12), d)
         valid = torch.maximum(valid, fill.to(d.dtype))
     d = d[:, 0]

@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 
 from tdof20.errors import TdofError
-from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, backproject, check_depth_mode, resize_frame,
-                                 resize_nearest)
+from tdof20.methods.data import (DEFAULT_DEPTH_MODE, N_CLASSES, check_depth_mode, fill_depth_holes, resize_colour,
+                                 resize_nearest, scale_intrinsics)
 from tdof20.methods.hff6dof import geometry_map
 
 VECTOR_ORIGINS = ("restored", "observed")
@@ -106,17 +106,31 @@ class HFFTransform:
         self.depth_mode = check_depth_mode(depth_mode)
         self.targets = bool(targets)
         self.vector_origin = check_vector_origin(vector_origin)
+        self.deferred = False
+
+    def defer_to_device(self):
+        """Hand the dense per-pixel part of this transform — hole filling, the geometry map, the
+        vector targets: nearly all its time at 480x640 — to the returned stage, ``stage(batch) ->
+        batch``, which the trainer runs on each collated batch on its device (a GPU is then not
+        starved by CPU workers). The items become the resized frames (``depth_raw``,
+        ``depth_origin``, ``instance``, ``obj``, ``R``, ``t`` besides rgb, K, label); the stage
+        turns a batch of them into exactly the batch of the undeferred transform (the same
+        operations, per sample, batched)."""
+        self.deferred = True
+        return self.device_stage
 
     def __call__(self, item: Mapping) -> dict:
         hw = self.image_size
-        K, depth, rgb, restored = resize_frame(item, hw, self.depth_mode)
-        out = {
-            "rgb": rgb,
-            "geo": geometry_map(depth[None], K[None])[0],
-            "depth": depth,
-            "K": K,
-            "scene_id": int(item["scene_id"]), "im_id": int(item["im_id"]),
-        }
+        K = scale_intrinsics(item["K"], tuple(item["rgb"].shape[1:]), hw)
+        raw = resize_nearest(item["depth"], hw)
+        rest = item.get("depth_restored")
+        restored = resize_nearest(rest, hw) if rest is not None else None
+        out = {"rgb": resize_colour(item["rgb"], hw), "depth_raw": raw, "K": K,
+               "scene_id": int(item["scene_id"]), "im_id": int(item["im_id"])}
+        if self.depth_mode == "restored":
+            if restored is None:
+                raise TdofError("depth mode 'restored' needs the restored depth (depth_restored/)")
+            out["depth_raw"] = restored  # the input depth as it is (input_depth)
         if "label" in item:
             label = item["label"] if self.lut is None else to_classes(item["label"], self.lut)
             out["label"] = resize_nearest(label, hw)
@@ -124,24 +138,66 @@ class HFFTransform:
             observed = self.vector_origin == "observed"
             if "label" not in item or (restored is None and not observed):
                 raise TdofError("training targets need labels and the restored depth")
-            obj = item["obj_id"] if self.lut is None else to_classes(item["obj_id"], self.lut)
-            out.update(self.vector_targets(out["label"], resize_nearest(item["instance"], hw),
-                                           depth if observed else restored, K, obj, item["R"], item["t"]))
+            if not observed:
+                out["depth_origin"] = restored
+            out.update(instance=resize_nearest(item["instance"], hw),
+                       obj=item["obj_id"] if self.lut is None else to_classes(item["obj_id"], self.lut),
+                       R=torch.as_tensor(item["R"]), t=torch.as_tensor(item["t"]))
+        if self.deferred:
+            return out
+        batch = {k: v[None] if isinstance(v, torch.Tensor) else v for k, v in out.items()}
+        return {k: v[0] if isinstance(v, torch.Tensor) else v for k, v in self.device_stage(batch).items()}
+
+    def device_stage(self, batch: Mapping) -> dict:
+        """The dense part of the transform on a batch of resized frames (see :meth:`defer_to_device`),
+        on the batch's device: the input depth (holes filled in mode 'filled'), its geometry map and,
+        with targets, the vector targets."""
+        out = dict(batch)
+        raw = out.pop("depth_raw")
+        depth = fill_depth_holes(raw) if self.depth_mode == "filled" else raw
+        out["depth"] = depth
+        out["geo"] = geometry_map(depth, out["K"])
+        if self.targets:
+            origin = out.pop("depth_origin", None)
+            out.update(self.vector_targets_batch(out["label"], out.pop("instance"), depth if origin is None else origin,
+                                                 out["K"], out.pop("obj"), out.pop("R"), out.pop("t")))
         return out
 
     def vector_targets(self, label: torch.Tensor, instance: torch.Tensor, restored: torch.Tensor, K: torch.Tensor,
                        obj_id: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> dict:
-        """Targets from the origin depth ``restored`` (the restored depth, or the input depth with
-        ``vector_origin = "observed"``): pixels of visible instances where that depth is > 0."""
-        H, W = label.shape
-        nk = self.kp_table.shape[1]
-        obj = obj_id.long().clamp(0, self.kp_table.shape[0] - 1)
-        kp_cam = torch.einsum("mij,mkj->mki", R.to(torch.float32), self.kp_table[obj]) + t.to(torch.float32)[:, None]
-        mask = (instance > 0) & (label > 0) & (restored > 0)
-        inst = (instance.long() - 1).clamp_min(0)
-        P = backproject(restored, K)                                   # (H,W,3)
-        d = kp_cam[inst] - P[:, :, None]                               # (H,W,K,3)
-        vec = F.normalize(d, dim=-1, eps=1e-6)
-        ok = mask & torch.isfinite(vec).all(-1).all(-1)
-        vec = torch.where(ok[..., None, None], vec, torch.zeros_like(vec))
-        return {"seg": label.long(), "vec": vec.reshape(H, W, nk * 3).permute(2, 0, 1).contiguous(), "mask": ok}
+        """Targets of one frame from the origin depth ``restored`` (the restored depth, or the input
+        depth with ``vector_origin = "observed"``): pixels of visible instances where that depth is > 0."""
+        out = self.vector_targets_batch(label[None], instance[None], restored[None], K[None], obj_id[None], R[None],
+                                        t[None])
+        return {k: v[0] for k, v in out.items()}
+
+    def vector_targets_batch(self, label: torch.Tensor, instance: torch.Tensor, origin: torch.Tensor, K: torch.Tensor,
+                             obj_id: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> dict:
+        """:meth:`vector_targets` of a batch: label, instance, origin (B,H,W), K (B,3,3), obj_id (B,M)
+        class indices, R (B,M,3,3), t (B,M,3) mm, on any device.
+
+        Computed on the object pixels only (they cover a small part of a frame; the (H,W,K,3) field
+        of the whole frame was most of the transform's time), with the very operations of
+        :func:`~tdof20.methods.data.backproject` per pixel: the targets are those of the whole-frame
+        computation, bit for bit."""
+        B, H, W = label.shape
+        dev = label.device
+        table = self.kp_table.to(dev)
+        nk = table.shape[1]
+        obj = obj_id.long().clamp(0, table.shape[0] - 1)
+        kp_cam = torch.einsum("bmij,bmkj->bmki", R.to(torch.float32), table[obj]) + t.to(torch.float32)[:, :, None]
+        mask = (instance > 0) & (label > 0) & (origin > 0)
+        bs, vs, us = mask.nonzero(as_tuple=True)
+        z = origin[bs, vs, us].to(torch.float32)
+        Kb = K.to(torch.float32)[bs]
+        P = torch.stack([(us.to(torch.float32) - Kb[:, 0, 2]) * z / Kb[:, 0, 0],
+                         (vs.to(torch.float32) - Kb[:, 1, 2]) * z / Kb[:, 1, 1], z], dim=-1)   # (n,3)
+        inst = (instance[bs, vs, us].long() - 1).clamp_min(0)
+        vec = F.normalize(kp_cam[bs, inst] - P[:, None], dim=-1, eps=1e-6)                # (n,K,3)
+        ok = torch.isfinite(vec).all(-1).all(-1)
+        field = torch.zeros(B, H, W, nk * 3, dtype=vec.dtype, device=dev)
+        field[bs, vs, us] = torch.where(ok[:, None], vec.reshape(-1, nk * 3), torch.zeros((), dtype=vec.dtype,
+                                                                                             device=dev))
+        good = torch.zeros(B, H, W, dtype=torch.bool, device=dev)
+        good[bs, vs, us] = ok
+        return {"seg": label.long(), "vec": field.permute(0, 3, 1, 2).contiguous(), "mask": good}

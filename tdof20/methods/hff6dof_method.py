@@ -129,6 +129,11 @@ class HFF6DoFTransform:
     def __call__(self, item: Mapping) -> dict:
         return self.inner(item)
 
+    def defer_to_device(self):
+        """The dense part (hole filling, geometry map, vector targets) batched on the training device
+        (:meth:`~tdof20.methods.hff6dof_data.HFFTransform.defer_to_device`); train.py uses it on a GPU."""
+        return self.inner.defer_to_device()
+
 
 def forward(net: HFF6DoF, batch: Mapping) -> dict:
     """The network alone: ``net(rgb, geo)`` on the network's device (channels-last on CUDA)."""

@@ -14,8 +14,9 @@ A run folder holds everything needed to resume and to predict (read and checked 
                           the split, the dataset and the training options (what predict rebuilds the
                           network from), and what the method records of its own (``run_record``)
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
-    RUN/history.json      per-epoch losses, learning rate, images/s (several processes: each one's
-                          weights digest at the end, which must agree)
+    RUN/history.json      per-epoch losses, learning rate, images/s, seconds spent waiting for the
+                          loader (data_seconds) and CPU seconds of the process (several processes:
+                          each one's weights digest at the end, which must agree)
     RUN/loss.png          loss curves (total and the method's parts) and learning rate
     RUN/data/{split}_train.h5   the packed training shard (made on first use, reused afterwards)
 
@@ -47,6 +48,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import resource
 import time
 import tomllib
 from collections.abc import Mapping
@@ -56,7 +59,13 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import torch
+# torch's OpenMP (libgomp on Linux) spin-waits at every barrier unless told otherwise, read once
+# when torch loads: on cores shared with anything else (a loader worker, another process) a
+# training step then took 10x the CPU time and wall time (docs in benchmarks/train_throughput.py).
+# Effective when this module is the first to import torch; the command line sets it at its start.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
 
 from tdof20.config import config_from_data
 from tdof20.dataset.reader import open_dataset
@@ -214,6 +223,28 @@ class LossModule(torch.nn.Module):
     def forward(self, batch: dict) -> torch.Tensor:
         total, self.parts = self.method.loss(self.net, batch, self.cfg, self.meta)
         return total
+
+
+class EpochIndices(torch.utils.data.Sampler):
+    """The image indices of the current epoch (set before each pass): one DataLoader with
+    persistent workers serves every epoch, so workers are forked once per call rather than once per
+    epoch (each fork made the next steps copy the network's and AdamW's written pages)."""
+
+    def __init__(self) -> None:
+        self.indices: list[int] = []
+
+    def __iter__(self):
+        return iter(self.indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process (user + system): beside an epoch's wall time it tells starved
+    (wall >> CPU) from busy (CPU grew: spinning threads, page faults)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def _meta_json(meta) -> dict:
@@ -444,7 +475,13 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                 model, device_ids=[local_rank] if dev.type == "cuda" else None,
                 find_unused_parameters=m.ddp_find_unused_parameters)
 
-        tdata = TransformedDataset(data, m.transform(cfg, meta, train=True))
+        transform = m.transform(cfg, meta, train=True)
+        # a transform whose dense per-pixel part can run batched on the training device
+        # (``defer_to_device() -> stage``; HFF6DoF's): there on a GPU, so that CPU loader workers do
+        # not starve it (on the CPU the workers keep it, overlapped with the step)
+        defer = getattr(transform, "defer_to_device", None)
+        device_stage = defer() if defer is not None and dev.type != "cpu" else None
+        tdata = TransformedDataset(data, transform)
         n = len(tdata)
         per_rank = n // world
         bs = min(batch_size, max(1, per_rank))
@@ -481,23 +518,32 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
 
         global_bs = bs * world
         start_step = step
+        epoch_idx = EpochIndices()
+        loader = torch.utils.data.DataLoader(
+            tdata, batch_size=bs, sampler=epoch_idx, num_workers=num_workers, collate_fn=collate,
+            worker_init_fn=worker_init, drop_last=True, pin_memory=dev.type == "cuda",
+            persistent_workers=num_workers > 0)
         with progress_bar(show, unit="img") as bar:
             task = bar.add_task("training", total=limit * global_bs, completed=min(step, limit) * global_bs)
             while step < limit:
                 sampler.set_epoch(epoch)
                 skip = step - epoch * steps_per_epoch  # steps of this epoch done before a resume
-                idx = list(sampler)[max(0, skip) * bs: steps_per_epoch * bs]
-                loader = torch.utils.data.DataLoader(
-                    tdata, batch_size=bs, sampler=idx, num_workers=num_workers, collate_fn=collate,
-                    worker_init_fn=worker_init,
-                    drop_last=True, pin_memory=dev.type == "cuda", persistent_workers=False)
+                epoch_idx.indices = list(sampler)[max(0, skip) * bs: steps_per_epoch * bs]
                 model.train()
                 t0, n_img, sums, counts = time.perf_counter(), 0, {}, {}
-                n_steps = 0
-                for batch in loader:
-                    if step >= limit:
+                c0, data_s, n_steps = _cpu_seconds(), 0.0, 0
+                batches = iter(loader)
+                while True:
+                    t_wait = time.perf_counter()
+                    batch = next(batches, None)
+                    data_s += time.perf_counter() - t_wait
+                    if batch is None or step >= limit:
                         break
                     batch = to_device(batch, dev)
+                    if device_stage is not None:  # the input side too: counted with the loader's wait
+                        t_wait = time.perf_counter()
+                        batch = device_stage(batch)
+                        data_s += time.perf_counter() - t_wait
                     lr_now = lr * lr_factor(step, total, lr_schedule, warmup)
                     for g in opt.param_groups:
                         g["lr"] = lr_now
@@ -524,12 +570,17 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                     bar.update(task, advance=global_bs,
                                description=f"epoch {epoch + 1}/{epochs} loss {rec['loss']:.3f}")
                 dt = time.perf_counter() - t0
+                cpu_s = _cpu_seconds() - c0
                 if step >= (epoch + 1) * steps_per_epoch or step >= total:
                     if n_steps:
+                        # data_seconds: waiting for the loader (the input side's share of the epoch);
+                        # cpu_seconds: this process's CPU time (wall >> CPU x threads: starved by others)
                         epochs_log.append({"epoch": epoch + 1, "steps": step,
                                            **{k: v / counts[k] for k, v in sums.items()},
                                            "lr": history[-1]["lr"], "seconds": round(dt, 2),
-                                           "images_per_s": round(n_img / dt, 2) if dt > 0 else None})
+                                           "images_per_s": round(n_img / dt, 2) if dt > 0 else None,
+                                           "data_seconds": round(data_s, 3), "cpu_seconds": round(cpu_s, 2),
+                                           "threads": torch.get_num_threads()})
                     if step >= (epoch + 1) * steps_per_epoch:
                         epoch += 1
                 if step < limit and time.perf_counter() - last_save[0] >= save_every_s:
@@ -537,7 +588,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                 if show and epochs_log:
                     e = epochs_log[-1]
                     others = ", ".join(f"{k} {v:.4f}" for k, v in e.items()
-                                       if k not in ("epoch", "steps", "loss", "lr", "seconds", "images_per_s"))
+                                       if k not in ("epoch", "steps", "loss", "lr", "seconds", "images_per_s",
+                                                    "data_seconds", "cpu_seconds", "threads"))
                     console.print(f"epoch {e['epoch']}: loss {e['loss']:.4f}" + (f" ({others})" if others else "")
                                   + f", {e['images_per_s']} images/s")
         processes = None
