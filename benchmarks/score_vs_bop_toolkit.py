@@ -17,6 +17,11 @@ transparent object's sensor depth. Results: per target instance an estimate (45%
 the thresholds, 27% far, 3% missing; symmetric objects turned by a symmetry), 5% a lower-scored
 second estimate.
 
+VSD's decisions can differ where an error lies within a pixel of a threshold: the toolkit's
+rasteriser snaps projected vertices to 1/256 pixel, tdof20 ray casts the exact mesh (its depths
+are quantised as the toolkit's 16-bit depth buffer stores them); docs/benchmark.md has the
+investigation.
+
 Both sides run in fresh processes, reading every file: tdof20 ``evaluate(..., split="test", metrics="ar")`` (VSD,
 MSSD, MSPD, AR); the toolkit ``scripts/eval_bop19_pose.py --renderer_type vispy --num_workers N``
 (its eval_calc_errors.py per error type, then eval_calc_scores.py per threshold), whose matches
@@ -323,6 +328,7 @@ def compare(out: Path, tk: dict) -> dict:
     slots = _tdof20_slots(out)
     n = diff = 0
     per_metric = {"vsd": 0, "mssd": 0, "mspd": 0}
+    where: dict = {}  # (scene, im, obj) -> differing decisions
     for key, (ob, s0, cnt) in slots.items():
         for m in ("vsd", "mssd", "mspd"):
             arr = fast[f"{m}_{ob}"][s0:s0 + cnt]
@@ -335,7 +341,8 @@ def compare(out: Path, tk: dict) -> dict:
                     if int(got[ti, j]) != tk["decisions"][(m, ti, j)].get(key, 0):
                         diff += 1
                         per_metric[m] += 1
-    return {"decisions": n, "differ": diff, "per_metric": per_metric}
+                        where[key] = where.get(key, 0) + 1
+    return {"decisions": n, "differ": diff, "per_metric": per_metric, "targets": where}
 
 
 def main() -> None:
@@ -413,6 +420,10 @@ def main() -> None:
     print(f"ratio {tk['wall_s'] / td['wall_s']:.1f}x wall, {tk['cpu_s'] / td['cpu_s']:.1f}x CPU; "
           f"max |AR difference| {dmax:.2e}; decisions differing: "
           f"{c['differ']} of {c['decisions']} ({', '.join(f'{k} {v}' for k, v in c['per_metric'].items())})")
+    if c["targets"]:  # where to look: the toolkit's errors_*.json under --keep's eval/ hold its values
+        print(f"in {len(c['targets'])} targets (scene, image, object): "
+              + ", ".join(f"{k} {v}" for k, v in sorted(c["targets"].items())[:8])
+              + (" ..." if len(c["targets"]) > 8 else ""))
     if tmp is not None:
         tmp.cleanup()
 

@@ -26,6 +26,17 @@ VSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # correctness thresholds of the VS
 # ``depth_im_to_dist_im_fast``, scales depth at pixel (u, v) by the ray through the integer (u, v).
 RENDER_PIXEL_OFFSET = 0.5
 
+# bop_toolkit's vispy renderer (the one eval_bop19_pose.py uses) reads its depth from a 16-bit
+# depth buffer (vispy's default GL_DEPTH_COMPONENT16) whose near and far planes are the eye-z
+# extremes of the model's bounding box at that pose: its depths lie on a grid of 65,535 steps
+# between them (about 1e-3 mm for a 60 mm object at 700 mm), each step converted back with float32
+# arithmetic. Ray-cast depths pushed through the same buffer (:func:`depth_buffer`) equal its values
+# (96% of them bit for bit; the others a step apart, where the GPU's interpolation rounds the other
+# way) instead of differing by up to half a step: a pixel whose |d_gt - d_est| or d - d_test lies
+# within a step of tau * diameter or delta decides as in the toolkit. (Ties bunch: a flat face of an
+# estimate a small shift away has the same |d_gt - d_est| at every pixel.)
+DEPTH_BUFFER_MAX = 65535  # 2^16 - 1: the unsigned normalised depth buffer's largest value (the far plane)
+
 
 def ray_norms(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera rays (x, y, 1) = K^-1 (u, v, 1) through image points (u, v) (float64), and |(x, y, 1)|.
@@ -63,6 +74,50 @@ def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return depth.astype(np.float64) * ray_norms(K, u, v)[2]
 
 
+_W32 = (np.arange(DEPTH_BUFFER_MAX + 1) / DEPTH_BUFFER_MAX).astype(np.float32)  # stored value -> float32 read back
+
+
+def depth_buffer_coefficients(near, far) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per clip planes (near, far) (scalars or arrays): a, b with the stored value round(a - b / z)
+    of eye depth z (OpenGL's window depth f/(f-n) - f n/((f-n) z), scaled to 0..65535), and the
+    toolkit's float32 ``mult`` = n f/(n-f), ``addi`` = f/(n-f) that turn it back into depth. Where
+    n = f (a flat model seen face on: the toolkit's projection divides by 0, its output is undefined)
+    every depth is n: a = b = 0, mult = n, addi = 1 give exactly that."""
+    near = np.asarray(near, np.float64)
+    far = np.asarray(far, np.float64)
+    flat = ~(far > near)
+    span = np.where(flat, 1.0, far - near)
+    a = np.where(flat, 0.0, far / span * DEPTH_BUFFER_MAX)
+    b = np.where(flat, 0.0, far * near / span * DEPTH_BUFFER_MAX)
+    mult = np.where(flat, near, near * far / -span).astype(np.float32)
+    addi = np.where(flat, 1.0, far / -span).astype(np.float32)
+    return a, b, mult, addi
+
+
+def depth_buffer(z: np.ndarray, near, far, coefficients=None) -> np.ndarray:
+    """Depths z (mm, 0 = none) as bop_toolkit's vispy renderer returns them (float32): stored in a
+    16-bit depth buffer with clip planes ``near`` and ``far`` (scalars) and read back by its
+    ``_draw_depth``: OpenGL's window depth rounded to 1/65535 (unsigned normalised), read as
+    float32 w, turned into n f/(n-f) / (w + f/(n-f)) in float32 (numpy < 2 computes a float32
+    array with a float64 scalar in float32), and 0 where w = 1: the far plane counts as background,
+    so a surface touching the far corner of the model's box loses the pixels that round to it, as
+    in the toolkit. ``coefficients``: instead of near and far, a function of the indices of the
+    hits (z > 0) giving their :func:`depth_buffer_coefficients` (per-pixel clip planes)."""
+    z = np.asarray(z)
+    hit = np.flatnonzero(z.reshape(-1) > 0)  # only hits are converted (half the rays miss)
+    a, b, mult, addi = depth_buffer_coefficients(near, far) if coefficients is None else coefficients(hit)
+    q = b / z.reshape(-1).take(hit)  # float64 (z float32: the cast's t)
+    np.subtract(a, q, out=q)
+    np.rint(q, out=q)
+    np.clip(q, 0, DEPTH_BUFFER_MAX, out=q)
+    qi = q.astype(np.int32)
+    d = mult / (_W32.take(qi) + addi)
+    d[qi == DEPTH_BUFFER_MAX] = 0.0
+    out = np.zeros(z.shape, np.float32)
+    out.reshape(-1)[hit] = d
+    return out
+
+
 def vsd_from_depths(depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.ndarray, K: np.ndarray,
                     diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS) -> np.ndarray:
     """Visible Surface Discrepancy for each tau (T,), BOP19 form (step cost, normalised by the
@@ -87,7 +142,8 @@ class DepthRenderer:
     """Depth images of one object model by ray casting (open3d RaycastingScene, built once in
     the model frame; the rays move into the model frame). Pixel (u, v) samples the ray through
     (u + 0.5, v + 0.5), bop_toolkit's renderers' pixel centres; depth along the optical axis in
-    mm, 0 where the ray misses."""
+    mm, 0 where the ray misses, through the toolkit's 16-bit depth buffer (:func:`depth_buffer`;
+    near and far planes from the model's bounding box, :meth:`clip_planes`)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         # lazy: open3d (and tdof20.geometry.raycast, which imports it at top level)
@@ -100,6 +156,9 @@ class DepthRenderer:
             raise ValueError("a triangle mesh is needed to render depth")
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+        lo, size = V.min(axis=0), V.max(axis=0) - V.min(axis=0)  # the toolkit's calc_3d_bbox corners
+        self.box_corners = np.array([[lo[0] + a * size[0], lo[1] + b * size[1], lo[2] + c * size[2], 1.0]
+                                     for a in (0, 1) for b in (0, 1) for c in (0, 1)])
         try:
             self.hull = np.asarray(convex_hull_points(V, F), np.float64)
         except Exception:  # degenerate (flat) meshes: every vertex bounds the silhouette
@@ -124,8 +183,18 @@ class DepthRenderer:
         t[~np.isfinite(t)] = 0.0
         return t
 
+    def clip_planes(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(near, far) (B,) of poses (B,3,3), (B,3): the eye-z extremes of the model's bounding box
+        corners, as the toolkit's ``render_object`` computes them (its view matrix is float32)."""
+        R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+        t = np.asarray(t, np.float64).reshape(-1, 3)
+        row = np.concatenate([R[:, 2, :], t[:, 2:3]], axis=1).astype(np.float32).astype(np.float64)
+        z = row @ self.box_corners.T  # (B, 8)
+        return z.min(axis=1), z.max(axis=1)
+
     def render(self, R, t, K, width: int, height: int) -> np.ndarray:
-        """(height, width) float32 depth of the model at pose (R, t): every pixel cast."""
+        """(height, width) float32 depth of the model at pose (R, t): every pixel cast, stored
+        as the toolkit's depth buffer stores it (:func:`depth_buffer`)."""
         v, u = np.mgrid[0:height, 0:width].reshape(2, -1).astype(np.float64) + RENDER_PIXEL_OFFSET
         x, y, _ = ray_norms(K, u, v)
         R = np.asarray(R, np.float64)
@@ -134,7 +203,8 @@ class DepthRenderer:
         for i in range(3):  # R^T (x, y, 1): the rays in the model frame
             d[:, i] = x * R[0, i] + y * R[1, i] + R[2, i]
         o = np.broadcast_to((-R.T @ t).astype(np.float32), d.shape)
-        return self.cast(o, d).reshape(height, width)
+        near, far = self.clip_planes(R, t)
+        return depth_buffer(self.cast(o, d), near[0], far[0]).reshape(height, width)
 
 
     def footprints(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int):
@@ -223,6 +293,11 @@ def vsd_batch(renderer: DepthRenderer, R_est, t_est, R_gt, t_gt, K, depth_test: 
     return out
 
 
+def _per_hit(coef: tuple, pose_of_hit: np.ndarray) -> tuple:
+    """Per-pose depth-buffer coefficients gathered for each hit."""
+    return tuple(c.take(pose_of_hit) for c in coef)
+
+
 def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, diameter, delta, taus):
     n = len(Re)
     V0 = np.minimum(be[:, 0], bg[:, 0])
@@ -239,6 +314,7 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
             for k in range(len(uniq))]
     lists = {}
     for key, R, t, bx, polys in (("g", Rg, tg, bg, pg), ("e", Re, te, be, pe)):
+        near, far = renderer.clip_planes(R, t)
         px = [_footprint_pixels(polys[j], bx[j], int(U0[j]), int(V0[j]), int(W[j])) for j in range(n)]
         cnt = np.array([len(q[0]) for q in px], np.int64)
         ends = np.cumsum(cnt)
@@ -272,8 +348,10 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
             img = depth_test[image[j]]
             dt[a:b] = img.ravel().take(v * img.shape[1] + u) * q
             cidx[a:b] = fl + off[j]
-        z = renderer.cast_rays(rays) * nrm
-        lists[key] = (cidx, z, dt, np.repeat(np.arange(n), cnt))
+        pose = np.repeat(np.arange(n), cnt)
+        coef = depth_buffer_coefficients(near, far)  # per pose; per hit below
+        z = depth_buffer(renderer.cast_rays(rays), None, None, lambda hit: _per_hit(coef, pose.take(hit))) * nrm
+        lists[key] = (cidx, z, dt, pose)
     cg, dg, dtg, pgi = lists["g"]
     ce, de, dte, pei = lists["e"]
     total = int(off[-1] + W[-1] * Hh[-1])
