@@ -1,8 +1,10 @@
 """The review tool in a real browser (issue 25, part 6): headless Chromium (Debian's, through
 Playwright) opens a scene with a refused object and a flagged frame, places the object with the
 keyboard, snaps it, relabels, sees its frames labelled, and rejects the flagged frame. The
-screenshots are the ones in docs/annotate.md (docs/img/review_*.png)."""
+screenshots go to the test's folder; with TDOF20_SCREENSHOTS=1 they replace the ones in
+docs/annotate.md (docs/img/review_*.png)."""
 import math
+import os
 import socket
 import threading
 import time
@@ -19,7 +21,7 @@ from tdof20.review import make_app
 from tests.test_review import build_broken_scene, true_pose
 
 CHROMIUM = Path("/usr/bin/chromium")
-IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
+DOCS_IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
 pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium (/usr/bin/chromium)")
 
 
@@ -52,8 +54,9 @@ def _key(page, key: str) -> None:
     page.wait_for_function(f"window.reviewLast && window.reviewLast.entry.id > {before}", timeout=60000)
 
 
-def test_a_refused_object_is_placed_snapped_and_labelled_in_chromium(served):
+def test_a_refused_object_is_placed_snapped_and_labelled_in_chromium(served, tmp_path):
     url, index, obj_id = served["url"], served["index"], served["obj_id"]
+    IMG = DOCS_IMG if os.environ.get("TDOF20_SCREENSHOTS") == "1" else tmp_path
     IMG.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM),
