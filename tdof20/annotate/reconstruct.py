@@ -366,14 +366,14 @@ def turning_points(points: np.ndarray, frames: list[tuple[np.ndarray, np.ndarray
         a = ok & (zo > 0) & (np.abs(zo - z) <= tol)
         agree += a
         decide += a | (ok & ((zo > z + tol) | (zo == 0)))
-    agree, decide = _pool(points, cfg.cluster_eps_mm, agree), _pool(points, cfg.cluster_eps_mm, decide)
+    agree, decide = _pool(points, cfg.cluster_eps_mm, agree, decide)
     return (decide < 2) | (agree > cfg.static_max_agree * decide)
 
 
-def _pool(points: np.ndarray, radius: float, values: np.ndarray) -> np.ndarray:
-    """(N,) each point's value summed with those of the points within ``radius`` of it."""
+def _pool(points: np.ndarray, radius: float, *values: np.ndarray) -> list[np.ndarray]:
+    """Each (N,) array of ``values``: every point's value summed with those of the points within
+    ``radius`` of it (the neighbour pairs found once for all of them)."""
     pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
-    out = values.astype(np.float64)
-    np.add.at(out, pairs[:, 0], values[pairs[:, 1]])
-    np.add.at(out, pairs[:, 1], values[pairs[:, 0]])
-    return out
+    i, j, n = pairs[:, 0], pairs[:, 1], len(points)
+    return [v + np.bincount(i, weights=v[j], minlength=n) + np.bincount(j, weights=v[i], minlength=n)
+            for v in values]
