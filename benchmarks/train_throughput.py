@@ -180,7 +180,7 @@ def _network(m, cfg, meta, tf, raw, batch_size, steps, repeats, gemm, gemm_cpu) 
     batch = collate([tf(raw[i]) for i in range(batch_size)])
     torch.manual_seed(0)
     net = m.build(cfg, meta).train()
-    opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-4, fused=True)  # as train.py on the CPU
     with FlopCounterMode(display=False) as fwd:
         total, _ = m.loss(net, batch, cfg, meta)
     with FlopCounterMode(display=False) as both:

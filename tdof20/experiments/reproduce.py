@@ -90,6 +90,7 @@ import os
 import resource
 import shutil
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 from tdof20.capture import run_capture, sim_config
@@ -228,7 +229,11 @@ class State:
         return self.data["jobs"][job]
 
     def finish(self, job: str, seconds: float, **info) -> None:
-        self.data["jobs"][job] = {"seconds": round(seconds, 2), **info}
+        """Records a finished job: its seconds and ``info``, when it finished (UTC) and the load
+        average then (a run spread over several sittings says which pieces ran when, and beside what)."""
+        self.data["jobs"][job] = {"seconds": round(seconds, 2), **info,
+                                  "finished": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                                  "load": round(os.getloadavg()[0], 2)}
         self.save()
 
 

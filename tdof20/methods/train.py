@@ -448,7 +448,11 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         if dev.type == "cuda":
             net = net.to(memory_format=torch.channels_last)
             torch.backends.cudnn.benchmark = True
-        opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
+        # fused: one kernel over all parameters instead of a dozen element-wise passes each; on the
+        # CPU that is 5x less optimiser time (HFF6DoF's 57 M parameters: 0.38 -> 0.075 s a step,
+        # a third of a 48x64 batch-4 step), the same update to float rounding (~1e-8)
+        opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay,
+                                fused=dev.type in ("cpu", "cuda"))
         scaler = torch.amp.GradScaler("cuda", enabled=use_amp and amp_dtype(dev) == torch.float16)
         epoch, step, history, epochs_log = 0, 0, [], []
         if resume:
