@@ -61,7 +61,11 @@ class _AnnotateGroup(typer.core.TyperGroup):
     ``tdof20 annotate evaluate ...`` is a subcommand."""
 
     def parse_args(self, ctx, args):
-        if args and args[0] not in self.commands and not args[0].startswith("-"):
+        # a raw session folder named like a subcommand (./review, evaluate) with the pipeline's --out
+        # is a session: no subcommand takes --out
+        session_named_like = bool(args) and args[0] in self.commands and "--out" in args \
+            and (Path(args[0]) / "session.json").is_file()
+        if args and (args[0] not in self.commands or session_named_like) and not args[0].startswith("-"):
             args = ["run", *args]
         return super().parse_args(ctx, args)
 

@@ -59,8 +59,10 @@ HARD_VAL_EVERY = 7
 #: every scene id of the release (single 1..20, multi 21..40)
 RELEASE_SCENES = tuple(range(1, MULTI_ID_OFFSET + N_MULTI))
 #: the protocols' rules in one line each, as dataset_info.json and tdof20_bop.json record them
-SPLIT_RULES = {"simple": "single-object scenes, contiguous test arc per arm position (docs/dataset.md)",
-               "hard": "train: single + multi 00,01,03-07,12-14,16-19; test: multi 02,08,09,10,11,15"}
+SPLIT_RULES = {"simple": "single-object scenes, contiguous test arc per arm position; validation: an arc as long, "
+                         "half a turn on (docs/dataset.md)",
+               "hard": "train: single + multi 00,01,03-07,12-14,16-19; test: multi 02,08,09,10,11,15; validation: "
+                       "whole held-out training scenes, one in 7 of each kind (arcs where a kind has fewer)"}
 __all__ = ["HARD_TEST_MULTI", "PAPER_HARD", "PAPER_SIMPLE", "PARTS", "SPLITS", "SPLIT_PART_SCENES", "SPLIT_RULES",
            "HARD_VAL_EVERY", "RELEASE_SCENES", "hard_val_scenes", "min_simple_steps", "part_needs", "part_of",
            "VAL_PART", "val_steps", "validation_images", "scene_can_serve", "scene_name", "scene_number",
