@@ -43,7 +43,9 @@ def test_a_wrong_model_for_one_object_gives_a_partial_scene(tmp_path: Path):
                 show_progress=False)
     models = tmp_path / "models"
     bad = _broken_models(raw, models)
-    out = tmp_path / "scene"
+    # the scene folder a batch into tmp_path/"batch" gives this session (DIR/multi/08), so that
+    # the batch below resumes this run instead of annotating the scene a second time
+    out = tmp_path / "batch" / "multi" / "08"
     s = annotate(raw, out, models_dir=models, cfg=CFG, progress=False)
     assert s["partial"] is True
     assert [f["obj_id"] for f in s["failed_objects"]] == [bad]
@@ -57,6 +59,9 @@ def test_a_wrong_model_for_one_object_gives_a_partial_scene(tmp_path: Path):
     assert "Objects not labelled" in (out / "qa" / "report.html").read_text()
     assert read_json(out / "work" / "summary.json")["partial"] is True
     assert f"object {bad}: FAILED" in summary_text(s) and "partial" in summary_text(s)
-    # a batch shows it: the scene's row says "partial", the summary lists it
+    # a batch shows it: the scene's row says "partial", the summary lists it (here the batch finds
+    # every stage of the scene up to date: a partial scene stays partial on a rerun, not "up to date")
     b = annotate_many([raw], tmp_path / "batch", models_dir=models, cfg=CFG, progress=False)
+    assert b["scenes"][0]["out"] == str(out.resolve())
     assert b["scenes"][0]["status"] == "partial" and b["partial"] == ["multi/08"] and b["failed"] == []
+    assert {st["status"] for st in read_json(out / "work" / "summary.json")["stages"].values()} == {"up to date"}

@@ -21,6 +21,7 @@ import socket
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -28,6 +29,7 @@ from tdof20.annotate.batch import SUMMARY, annotate_many, batch_text, plan_batch
 from tdof20.annotate.config import load_annotate_config
 from tdof20.annotate.pipeline import annotate
 from tdof20.capture import run_capture, sim_config
+from tdof20.cli import main
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
 
@@ -39,6 +41,20 @@ LABEL_FILES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "scen
 
 def run(*args):
     return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, timeout=600)
+
+
+def run_here(capfd, monkeypatch, *args):
+    """``tdof20 ARGS`` through the console script's entry point (``tdof20.cli.main``) in this
+    process — its exit code and what it printed, as :func:`run` gives them — for the calls whose
+    subject is not the subprocess (each subprocess costs ~3 s of imports)."""
+    capfd.readouterr()
+    monkeypatch.setattr(sys, "argv", ["tdof20", *map(str, args)])
+    with pytest.raises(SystemExit) as e:
+        main()
+    out = capfd.readouterr()
+    code = e.value.code
+    return SimpleNamespace(returncode=code if isinstance(code, int) else (0 if code is None else 1),
+                           stdout=out.out, stderr=out.err)
 
 
 def one_line_error(res, *needles):
@@ -100,7 +116,7 @@ def local_run(sessions):
     return {"out": out, "res": res}
 
 
-def test_several_sessions_one_failing_the_others_finish_and_resume(sessions, local_run):
+def test_several_sessions_one_failing_the_others_finish_and_resume(sessions, local_run, capfd, monkeypatch):
     res, out = local_run["res"], local_run["out"]
     # the failing session names itself; the others finished
     err = one_line_error(res, "1 of 3 scenes failed: multi/10", "the others finished", SUMMARY)
@@ -124,8 +140,8 @@ def test_several_sessions_one_failing_the_others_finish_and_resume(sessions, loc
     # a rerun of the two that finished: each scene resumes on its own, nothing is redone
     before = {sid: (out / sid / "scene_gt.json").stat().st_mtime_ns for sid in ("multi/08", "multi/09")}
     r = sessions["raws"]
-    res2 = run("annotate", r["multi/08"], r["multi/09"], "--out", out, "--models", sessions["models"],
-               "--config", sessions["config"], "--workers", "1")
+    res2 = run_here(capfd, monkeypatch, "annotate", r["multi/08"], r["multi/09"], "--out", out, "--models",
+                    sessions["models"], "--config", sessions["config"], "--workers", "1")
     assert res2.returncode == 0, res2.stderr
     assert [ln.split()[1:3] for ln in res2.stdout.splitlines() if ln.startswith("multi/")] == \
         [["up", "to"], ["up", "to"]]
@@ -133,16 +149,17 @@ def test_several_sessions_one_failing_the_others_finish_and_resume(sessions, loc
     assert before == {sid: (out / sid / "scene_gt.json").stat().st_mtime_ns for sid in before}
 
 
-def test_bad_raw_and_duplicate_scene_ids_stop_before_anything_runs(sessions, tmp_path):
+def test_bad_raw_and_duplicate_scene_ids_stop_before_anything_runs(sessions, tmp_path, capfd, monkeypatch):
     r = sessions["raws"]
     out = tmp_path / "batch"
     not_a_session = tmp_path / "notes"
     not_a_session.mkdir()
-    one_line_error(run("annotate", r["multi/08"], not_a_session, "--out", out), str(not_a_session), "not a raw session")
+    one_line_error(run_here(capfd, monkeypatch, "annotate", r["multi/08"], not_a_session, "--out", out),
+                   str(not_a_session), "not a raw session")
     twin = tmp_path / "twin"
     shutil.copytree(r["multi/08"], twin, ignore=shutil.ignore_patterns("rgb", "depth"))
-    one_line_error(run("annotate", r["multi/08"], r["multi/09"], twin, "--out", out), "both hold scene multi/08",
-                   str(twin))
+    one_line_error(run_here(capfd, monkeypatch, "annotate", r["multi/08"], r["multi/09"], twin, "--out", out),
+                   "both hold scene multi/08", str(twin))
     assert not out.exists()
     # a Ray cluster that cannot be reached: one line, fast, before anything is written
     with socket.socket() as sock:

@@ -1,14 +1,17 @@
 """``tdof20 annotate`` as a user meets it: the console script in a subprocess on a small
 simulated session — the whole pipeline, a resumed rerun, stages alone, evaluate, and bad input
-as one-line errors."""
+as one-line errors (the first in a subprocess, the others through the same entry point,
+``tdof20.cli.main``, in this process: each subprocess costs ~3 s of imports)."""
 
 import json
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 
 from tdof20.capture import run_capture, sim_config
+from tdof20.cli import main
 from tdof20.formats import read_json, read_scene
 
 EXE = [sys.executable, "-m", "tdof20.cli"]
@@ -16,6 +19,19 @@ EXE = [sys.executable, "-m", "tdof20.cli"]
 
 def run(*args):
     return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, timeout=600)
+
+
+def run_here(capfd, monkeypatch, *args):
+    """``tdof20 ARGS`` through the console script's entry point in this process: its exit code
+    and what it printed (file-descriptor level, as a subprocess's pipes would hold it)."""
+    capfd.readouterr()
+    monkeypatch.setattr(sys, "argv", ["tdof20", *map(str, args)])
+    with pytest.raises(SystemExit) as e:
+        main()
+    out = capfd.readouterr()
+    code = e.value.code
+    return SimpleNamespace(returncode=code if isinstance(code, int) else (0 if code is None else 1),
+                           stdout=out.out, stderr=out.err)
 
 
 def one_line_error(res, *needles):
@@ -30,7 +46,7 @@ def one_line_error(res, *needles):
 @pytest.fixture(scope="module")
 def raw(tmp_path_factory):
     p = tmp_path_factory.mktemp("cli_annotate") / "raw"
-    run_capture(sim_config("multi/08", steps=12, step_deg=30.0, n_arms=1, width=200, height=150), p, yes=True,
+    run_capture(sim_config("multi/08", steps=12, step_deg=30.0, n_arms=1, width=160, height=120), p, yes=True,
                 show_progress=False)
     return p
 
@@ -62,12 +78,16 @@ def test_annotate_runs_resumes_and_evaluates(raw, tmp_path):
     assert set(ev["objects"]) == {str(e["obj_id"]) for e in read_json(raw / "session.json")["objects"]}
 
 
-def test_annotate_bad_input_is_one_line(raw, tmp_path):
+def test_annotate_bad_input_is_one_line(raw, tmp_path, capfd, monkeypatch):
     one_line_error(run("annotate", tmp_path / "nope", "--out", tmp_path / "s"), "nope")
-    one_line_error(run("annotate", raw, "--out", tmp_path / "s", "--stages", "labels"), "labels")
+
+    def here(*args):
+        return run_here(capfd, monkeypatch, *args)
+
+    one_line_error(here("annotate", raw, "--out", tmp_path / "s", "--stages", "labels"), "labels")
     cfg = tmp_path / "a.toml"
     cfg.write_text("[label]\nmethdo = 1\n")
-    one_line_error(run("annotate", raw, "--out", tmp_path / "s", "--config", cfg), str(cfg), "methdo")
-    one_line_error(run("annotate", raw, "--out", tmp_path / "s", "--models", tmp_path / "nomodels"), "nomodels")
-    one_line_error(run("annotate", "evaluate", tmp_path / "s2", "--truth", raw / "truth"), "s2")
+    one_line_error(here("annotate", raw, "--out", tmp_path / "s", "--config", cfg), str(cfg), "methdo")
+    one_line_error(here("annotate", raw, "--out", tmp_path / "s", "--models", tmp_path / "nomodels"), "nomodels")
+    one_line_error(here("annotate", "evaluate", tmp_path / "s2", "--truth", raw / "truth"), "s2")
     assert not (tmp_path / "s" / "scene_gt.json").exists()
