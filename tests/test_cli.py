@@ -1,10 +1,15 @@
-"""The command line as a user meets it: the real console script in a subprocess."""
+"""The command line as a user meets it. The console script in a subprocess where the process itself
+is tested (the help, which must start without torch; the demo end to end); elsewhere ``tdof20.cli.main``
+in this process with its stdout and stderr captured (:func:`cli`): the same parsing, checks, output
+and exit codes, without 3-8 s of imports (torch, open3d) for every command."""
 
+import io
 import json
 import re
 import shutil
 import subprocess
 import sys
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +20,27 @@ from tdof20.formats import read_models_info, read_png
 EXE = [sys.executable, "-m", "tdof20.cli"]
 
 
-def run(*args, cwd=None):
-    return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, cwd=cwd, timeout=300)
+def run(*args, cwd=None, timeout=300):
+    """``tdof20 ARGS`` as a fresh process (the console script)."""
+    return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, cwd=cwd, timeout=timeout)
+
+
+def cli(*args) -> subprocess.CompletedProcess:
+    """``tdof20 ARGS`` in this process: :func:`tdof20.cli.main` (what the console script calls, with its
+    one-line error handling) with ``sys.argv`` set and stdout/stderr captured; the exit code is
+    its ``SystemExit``'s. An exception that escapes ``main`` (a traceback for the user) fails the test."""
+    from tdof20.cli import main
+
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    argv, sys.argv = sys.argv, ["tdof20", *(str(a) for a in args)]
+    try:
+        with redirect_stdout(out), redirect_stderr(err):
+            main()
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = argv
+    return subprocess.CompletedProcess(["tdof20", *map(str, args)], code, out.getvalue(), err.getvalue())
 
 
 def one_line_error(res, *needles):
@@ -30,6 +54,8 @@ def one_line_error(res, *needles):
 
 
 def test_help_lists_only_built_commands():
+    """The console script's own help (a process of its own: it starts without torch, see
+    test_architecture.py)."""
     res = run("--help")
     assert res.returncode == 0
     import re
@@ -41,7 +67,7 @@ def test_help_lists_only_built_commands():
 def test_annotate_help_shows_the_pipeline_options():
     """`tdof20 annotate --help`: the evaluate subcommand and the pipeline's own options (its command
     is hidden so that `tdof20 annotate RAW --out SCENE` reads naturally)."""
-    res = run("annotate", "--help")
+    res = cli("annotate", "--help")
     assert res.returncode == 0
     for opt in ("evaluate", "--out", "--models", "--stages", "--config", "--executor", "--ray-address",
                 "--workers", "--force"):
@@ -51,14 +77,14 @@ def test_annotate_help_shows_the_pipeline_options():
 
 def test_error_keeps_brackets(tmp_path):
     """An error naming config tables ([sim], [turntable]) prints them: rich markup would eat them."""
-    one_line_error(run("capture", "run", tmp_path / "c.toml", "--clutter", "cabinet", "--out", tmp_path / "s"),
+    one_line_error(cli("capture", "run", tmp_path / "c.toml", "--clutter", "cabinet", "--out", tmp_path / "s"),
                    "[sim] table", "[turntable] direction")
 
 
 def test_paths_with_brackets_print_whole(tmp_path):
     """A folder named like rich markup ('[sim]', '[/x]') is printed as it is, not eaten or a MarkupError."""
     out = tmp_path / "[sim]" / "[/x]" / "models"
-    res = run("objects", "export", out, "--ids", "3")
+    res = cli("objects", "export", out, "--ids", "3")
     assert res.returncode == 0, res.stderr
     assert str(out) in res.stderr.replace("\n", "") and "Traceback" not in res.stderr
 
@@ -77,15 +103,15 @@ def test_out_of_range_numbers_are_one_line(tmp_path, args, needle):
     args = [str(out / "p.png") if a == "P.png" else a for a in args]
     if args[0] != "objects":
         args += ["--out", str(out)]
-    one_line_error(run(*args), needle)
+    one_line_error(cli(*args), needle)
     assert not out.exists()
 
 
 def test_empty_ids_and_a_folder_for_a_png_are_one_line(tmp_path):
-    one_line_error(run("objects", "export", tmp_path / "m", "--ids", ""), "--ids names no object")
+    one_line_error(cli("objects", "export", tmp_path / "m", "--ids", ""), "--ids names no object")
     assert not (tmp_path / "m").exists()
     (tmp_path / "d").mkdir()
-    one_line_error(run("objects", "picture", tmp_path / "d", "--tile", "16"), str(tmp_path / "d"), "names a folder")
+    one_line_error(cli("objects", "picture", tmp_path / "d", "--tile", "16"), str(tmp_path / "d"), "names a folder")
     assert list((tmp_path / "d").iterdir()) == [] and not list(tmp_path.glob(".*.tmp"))
 
 
@@ -98,12 +124,12 @@ def test_unreachable_hand_eye_is_one_line(tmp_path):
     cfg = tmp_path / "he.toml"
     cfg.write_text('[session]\nscene_id = "multi/08"\n[hand_eye]\nT_tcp_cam = ['
                    + ", ".join(f"{x:g}" for x in T.reshape(-1)) + "]\n")
-    one_line_error(run("capture", "plan", cfg), str(cfg), "hand_eye.T_tcp_cam", "cannot place the camera")
+    one_line_error(cli("capture", "plan", cfg), str(cfg), "hand_eye.T_tcp_cam", "cannot place the camera")
 
 
 def test_help_keeps_defaults_in_brackets():
     """rich markup would eat a bracketed default such as [cosine] as a style tag: they are escaped."""
-    train, predict = run("train", "--help").stdout, run("predict", "--help").stdout
+    train, predict = cli("train", "--help").stdout, cli("predict", "--help").stdout
     for text in ("[cosine]", "[filled]", "[method]"):
         assert text in train, text
     assert "[the run's]" in predict
@@ -113,22 +139,22 @@ def test_method_options_are_set_with_set_not_with_method_flags(tmp_path):
     """HFF6DoF's options are no flags of train/predict: --set KEY=VALUE sets any method's, checked by
     its config (one line naming the key) before any work."""
     for cmd in ("train", "predict"):
-        text = run(cmd, "--help").stdout
+        text = cli(cmd, "--help").stdout
         assert "--set" in text and not any(f in text for f in ("--fuse-stages", "--seg-head", "--masks", "--voting"))
     args = ("--dataset", tmp_path / "none", "--split", "simple", "--out", tmp_path / "run")
-    one_line_error(run("train", "hff6dof", *args, "--set", "fuse_stage=2"), "--set", "unknown option 'fuse_stage'")
-    one_line_error(run("train", "pvnet", *args, "--set", "fuse_stages=2"), "--set", "fuse_stages")
-    one_line_error(run("train", "hff6dof", *args, "--set", "fuse_stages=9"), "--set", "fuse_stages must be in 1..5")
-    one_line_error(run("train", "hff6dof", *args, "--set", "fuse_stages"), "--set", "key=value")
-    res = run("train", "hff6dof", *args, "--fuse-stages", "2")
+    one_line_error(cli("train", "hff6dof", *args, "--set", "fuse_stage=2"), "--set", "unknown option 'fuse_stage'")
+    one_line_error(cli("train", "pvnet", *args, "--set", "fuse_stages=2"), "--set", "fuse_stages")
+    one_line_error(cli("train", "hff6dof", *args, "--set", "fuse_stages=9"), "--set", "fuse_stages must be in 1..5")
+    one_line_error(cli("train", "hff6dof", *args, "--set", "fuse_stages"), "--set", "key=value")
+    res = cli("train", "hff6dof", *args, "--fuse-stages", "2")
     assert res.returncode != 0 and "No such option" in res.stderr
 
 
 def test_objects_list_and_export(tmp_path):
-    res = run("objects", "list")
+    res = cli("objects", "list")
     assert res.returncode == 0 and "cube_136" in res.stdout and "whisky_cup_270" in res.stdout
     assert "capacity" in res.stdout
-    res = run("objects", "export", tmp_path / "models", "--ids", "3,15")
+    res = cli("objects", "export", tmp_path / "models", "--ids", "3,15")
     assert res.returncode == 0, res.stderr
     info = read_models_info(tmp_path / "models")
     assert sorted(info) == [3, 15]
@@ -136,21 +162,21 @@ def test_objects_list_and_export(tmp_path):
 
 
 def test_bad_ids_and_scenes_are_one_line_errors(tmp_path):
-    one_line_error(run("objects", "export", tmp_path / "m", "--ids", "3,25"), "25")
+    one_line_error(cli("objects", "export", tmp_path / "m", "--ids", "3,25"), "25")
     assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
-    one_line_error(run("objects", "export", tmp_path / "m", "--ids", "x"), "--ids")
-    one_line_error(run("capture", "run", "--sim", "--scene", "multi/21", "--out", tmp_path / "s"), "multi/21")
-    one_line_error(run("capture", "run", "--sim", "--scene", "multi/20", "--out", tmp_path / "s"), "multi/20")
-    one_line_error(run("capture", "run", "--sim", "--steps", "0", "--out", tmp_path / "s"), "turntable.steps")
+    one_line_error(cli("objects", "export", tmp_path / "m", "--ids", "x"), "--ids")
+    one_line_error(cli("capture", "run", "--sim", "--scene", "multi/21", "--out", tmp_path / "s"), "multi/21")
+    one_line_error(cli("capture", "run", "--sim", "--scene", "multi/20", "--out", tmp_path / "s"), "multi/20")
+    one_line_error(cli("capture", "run", "--sim", "--steps", "0", "--out", tmp_path / "s"), "turntable.steps")
 
 
 @pytest.fixture(scope="module")
 def cli_session(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "s"
-    res = run("capture", "run", "--sim", "--scene", "single/05", "--steps", "2", "--step-deg", "90",
+    res = cli("capture", "run", "--sim", "--scene", "single/05", "--steps", "2", "--step-deg", "90",
               "--arm-positions", "1", "--width", "96", "--height", "72", "--out", out, "--yes")
     assert res.returncode == 0, res.stderr
-    res = run("sim", "sheet", out)
+    res = cli("sim", "sheet", out)
     assert res.returncode == 0, res.stderr
     return out
 
@@ -158,7 +184,7 @@ def cli_session(tmp_path_factory):
 def test_sim_session_and_sheet(cli_session, tmp_path):
     sheet = read_png(cli_session / "contact_sheet.png", "rgb")
     assert sheet.shape[0] > 50 and sheet.std() > 10
-    res = run("sim", "sheet", cli_session, "--out", tmp_path / "sheet.png", "--frames", "1")
+    res = cli("sim", "sheet", cli_session, "--out", tmp_path / "sheet.png", "--frames", "1")
     assert res.returncode == 0 and (tmp_path / "sheet.png").exists()
 
 
@@ -168,33 +194,33 @@ def test_corrupt_inputs_are_one_line_errors_and_nothing_is_damaged(cli_session, 
     png = s / "opaque/arm0/rgb/000000.png"
     png.write_bytes(png.read_bytes()[:200])  # truncated PNG
     before = {p: p.read_bytes() for p in s.rglob("*") if p.is_file()}
-    one_line_error(run("sim", "sheet", s, "--out", tmp_path / "x.png"), "000000.png")
+    one_line_error(cli("sim", "sheet", s, "--out", tmp_path / "x.png"), "000000.png")
     assert {p: p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
     # malformed session.json
     d = json.loads((s / "session.json").read_text())
     d["camera"]["K"] = d["camera"]["K"][:8]
     (s / "session.json").write_text(json.dumps(d))
-    one_line_error(run("sim", "sheet", s), "session.json", "K")
+    one_line_error(cli("sim", "sheet", s), "session.json", "K")
     (s / "session.json").write_text("{not json")
-    one_line_error(run("sim", "sheet", s), "session.json")
+    one_line_error(cli("sim", "sheet", s), "session.json")
 
 
 def test_session_into_another_sessions_folder_is_refused(cli_session):
     before = (cli_session / "session.json").read_bytes()
-    res = run("capture", "run", "--sim", "--scene", "single/06", "--steps", "2", "--step-deg", "90",
+    res = cli("capture", "run", "--sim", "--scene", "single/06", "--steps", "2", "--step-deg", "90",
               "--arm-positions", "1", "--width", "96", "--height", "72", "--out", cli_session, "--yes")
     one_line_error(res, "different session")
     assert (cli_session / "session.json").read_bytes() == before
 
 
 def test_sim_frames(tmp_path):
-    res = run("sim", "frames", "--scene", "multi/02", "--angles", "0,45", "--width", "80", "--height", "60",
+    res = cli("sim", "frames", "--scene", "multi/02", "--angles", "0,45", "--width", "80", "--height", "60",
               "--out", tmp_path)
     assert res.returncode == 0, res.stderr
     assert len(list(tmp_path.glob("*_rgb.png"))) == 4
     d = read_png(next(tmp_path.glob("*transparent_depth.png")), "depth")
     assert d.dtype == np.uint16 and (d > 0).any()
-    one_line_error(run("sim", "frames", "--arm", "9", "--out", tmp_path), "--arm")
+    one_line_error(cli("sim", "frames", "--arm", "9", "--out", tmp_path), "--arm")
 
 
 @pytest.mark.timeout(900)  # the whole demo at tiny sizes: ~80 s idle, several times that beside other tests
@@ -203,7 +229,7 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     # the smallest session registration handles: 2 arm positions x 12 steps of 5 deg
     opts = ["--scenes", "single/juice_cup_340", "--steps", "12", "--step-deg", "5", "--arm-positions", "2",
             "--width", "160", "--height", "120", "--image-size", "48x64", "--epochs", "1", "--device", "cpu"]
-    res = run("demo", "--out", demo, *opts)
+    res = run("demo", "--out", demo, *opts, timeout=840)  # the console script, end to end (the test's limit: 900 s)
     assert res.returncode == 0, res.stderr
     for f in ("demo.json", "models/models_info.json", "models/obj_000012.ply",
               "raw/single_juice_cup_340/session.json", "scenes/single_juice_cup_340/scene_gt.json",
@@ -239,7 +265,7 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
                             "predict/pvnet", "score", "total"}
     # a rerun resumes: every stage is reused
     mtime = (demo / "runs/hff6dof_simple/last.pt").stat().st_mtime
-    res = run("demo", "--out", demo, *opts)
+    res = cli("demo", "--out", demo, *opts)
     assert res.returncode == 0, res.stderr
     out = res.stderr + res.stdout
     assert out.count("up to date") == 6 and len(re.findall(r"has its \d+ steps already", out)) == 2
@@ -256,67 +282,67 @@ def test_demo_runs_end_to_end_and_the_method_commands_on_its_output(tmp_path):
     assert "1 objects" not in out and "mean (1 object)" in out
     # other data options on the same folder are refused
     # the alias single/12 is the same scene: the data options are compared, not the spelling
-    one_line_error(run("demo", "--out", demo, "--scenes", "single/12", "--steps", "13"), "demo.json", "steps 12 (now 13)")
-    one_line_error(run("demo", "--out", tmp_path / "d2", "--scenes", "multi/08"), "single-object")
-    one_line_error(run("demo", "--out", tmp_path / "d3", "--scenes", "single/99"), "single/99")
-    one_line_error(run("demo", "--out", tmp_path / "d4", "--step-deg", "60"), "--step-deg")
+    one_line_error(cli("demo", "--out", demo, "--scenes", "single/12", "--steps", "13"), "demo.json", "steps 12 (now 13)")
+    one_line_error(cli("demo", "--out", tmp_path / "d2", "--scenes", "multi/08"), "single-object")
+    one_line_error(cli("demo", "--out", tmp_path / "d3", "--scenes", "single/99"), "single/99")
+    one_line_error(cli("demo", "--out", tmp_path / "d4", "--step-deg", "60"), "--step-deg")
     from tdof20.experiments.demo import run_demo
     from tdof20.errors import TdofError  # an unknown method: one line naming the known ones, nothing written
     with pytest.raises(TdofError, match=r"unknown method 'posecnn' \(known: hff6dof, pvnet"):
         run_demo(tmp_path / "d5", methods=("hff6dof", "posecnn"))
-    one_line_error(run("demo", "--out", tmp_path / "d6", "--methods", "posecnn"), "posecnn", "hff6dof")
+    one_line_error(cli("demo", "--out", tmp_path / "d6", "--methods", "posecnn"), "posecnn", "hff6dof")
     assert not (tmp_path / "d6").exists()
     assert not (tmp_path / "d5").exists()
     root, run_dir = demo / "dataset", demo / "runs/hff6dof_simple"
     # train resumes and extends the demo's run; predict and score the other way of voting
-    res = run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir, "--image-size", "48x64",
+    res = cli("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir, "--image-size", "48x64",
               "--epochs", "2", "--batch-size", "4", "--device", "cpu", "--workers", "0")
     assert res.returncode == 0, res.stderr
     assert json.loads((run_dir / "history.json").read_text())["epochs"][-1]["epoch"] == 2
-    res = run("predict", run_dir, "--dataset", root, "--split", "simple", "--out", tmp_path / "r3d.csv",
+    res = cli("predict", run_dir, "--dataset", root, "--split", "simple", "--out", tmp_path / "r3d.csv",
               "--set", "voting=3d", "--device", "cpu", "--workers", "0")
     assert res.returncode == 0, res.stderr
-    res = run("benchmark", "score", tmp_path / "r3d.csv", demo / "results/hff6dof_simple.csv", "--dataset", root,
+    res = cli("benchmark", "score", tmp_path / "r3d.csv", demo / "results/hff6dof_simple.csv", "--dataset", root,
               "--split", "simple", "--json", tmp_path / "s.json")
     assert res.returncode == 0, res.stderr
     assert "Table 1" in res.stdout and set(json.loads((tmp_path / "s.json").read_text())) == {"r3d", "hff6dof_simple"}
     # mistakes are one line
-    one_line_error(run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir,
+    one_line_error(cli("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", run_dir,
                        "--image-size", "64x96", "--device", "cpu"), "image_size", "config.json")
-    one_line_error(run("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", tmp_path / "r",
+    one_line_error(cli("train", "hff6dof", "--dataset", root, "--split", "simple", "--out", tmp_path / "r",
                        "--image-size", "big"), "--image-size")
-    one_line_error(run("predict", tmp_path, "--dataset", root, "--split", "simple", "--out", tmp_path / "x.csv"),
+    one_line_error(cli("predict", tmp_path, "--dataset", root, "--split", "simple", "--out", tmp_path / "x.csv"),
                    "not an HFF6DoF run")
-    one_line_error(run("predict", run_dir, "--dataset", root, "--split", "easy", "--out", tmp_path / "x.csv"), "easy")
-    one_line_error(run("benchmark", "score", tmp_path / "none.csv", "--dataset", root, "--split", "simple"), "none.csv")
+    one_line_error(cli("predict", run_dir, "--dataset", root, "--split", "easy", "--out", tmp_path / "x.csv"), "easy")
+    one_line_error(cli("benchmark", "score", tmp_path / "none.csv", "--dataset", root, "--split", "simple"), "none.csv")
 
 
 def test_benchmark_profile(tmp_path):
-    res = run("benchmark", "profile", "hff6dof", "--json", "--device", "cpu", "--height", "64", "--width", "96",
+    res = cli("benchmark", "profile", "hff6dof", "--json", "--device", "cpu", "--height", "64", "--width", "96",
               "--repeats", "1")
     assert res.returncode == 0, res.stderr
     p = json.loads(res.stdout)
     assert p["method"] == "hff6dof" and p["parameters"] == 56_758_992 and abs(p["macs_480x640_G"] - 84.27) < 0.01
     assert p["network_ms"] > 0 and p["end_to_end_ms"] > 0 and p["untrained"] and isinstance(p["poses"], int)
-    res = run("benchmark", "profile", "hff6dof", "--device", "cpu", "--height", "64", "--width", "96", "--runs", "1")
+    res = cli("benchmark", "profile", "hff6dof", "--device", "cpu", "--height", "64", "--width", "96", "--runs", "1")
     assert "multiply-adds" in res.stdout and "FPS" in res.stdout
-    one_line_error(run("benchmark", "profile", "posecnn"), "posecnn", "hff6dof")
+    one_line_error(cli("benchmark", "profile", "posecnn"), "posecnn", "hff6dof")
 
 
 def test_dataset_commands(tmp_path):
     raw = tmp_path / "raw"
-    assert run("capture", "run", "--sim", "--scene", "multi/02", "--steps", "2", "--step-deg", "90",
+    assert cli("capture", "run", "--sim", "--scene", "multi/02", "--steps", "2", "--step-deg", "90",
                "--arm-positions", "1", "--width", "64", "--height", "48", "--out", raw, "--yes").returncode == 0
-    assert run("sim", "label", raw, "--out", tmp_path / "lab").returncode == 0
-    res = run("dataset", "build", tmp_path / "lab", "--out", tmp_path / "root")
+    assert cli("sim", "label", raw, "--out", tmp_path / "lab").returncode == 0
+    res = cli("dataset", "build", tmp_path / "lab", "--out", tmp_path / "root")
     assert res.returncode == 0, res.stderr
-    res = run("dataset", "stats", tmp_path / "root", "--json")
+    res = cli("dataset", "stats", tmp_path / "root", "--json")
     assert json.loads(res.stdout)["splits"]["hard_test"] == 2
-    res = run("dataset", "pack", tmp_path / "root", "--split", "hard", "--part", "test", "--out", tmp_path / "t.h5")
+    res = cli("dataset", "pack", tmp_path / "root", "--split", "hard", "--part", "test", "--out", tmp_path / "t.h5")
     assert res.returncode == 0 and (tmp_path / "t.h5").exists()
-    one_line_error(run("dataset", "pack", tmp_path / "root", "--split", "medium", "--part", "test",
+    one_line_error(cli("dataset", "pack", tmp_path / "root", "--split", "medium", "--part", "test",
                        "--out", tmp_path / "u.h5"), "medium")
-    one_line_error(run("dataset", "stats", tmp_path / "nothing"), str(tmp_path / "nothing"), "no such dataset folder")
+    one_line_error(cli("dataset", "stats", tmp_path / "nothing"), str(tmp_path / "nothing"), "no such dataset folder")
 
 
 def test_a_failed_jobs_progress_bar_is_cleared_before_its_error(capsys):
