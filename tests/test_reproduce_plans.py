@@ -53,9 +53,29 @@ def test_each_preset_plans_the_jobs_recorded(preset):
         assert now[key] == g[key], key
 
 
+EXAMPLE = Path(__file__).parents[1] / "examples" / "comparison_cpu.toml"
+
+
 @pytest.mark.parametrize("preset", sorted(R.PRESETS))
 def test_every_compared_row_gets_the_same_budget_candidates_and_seeds(preset):
-    cfg = R.make_config(preset)
+    assert_fair(R.make_config(preset), preset)
+
+
+def test_the_example_comparison_is_fair_and_trains_every_row():
+    """examples/comparison_cpu.toml, the first trained comparison's config (docs/results.md): a TOML
+    over the cpu preset, as fair as the presets, every method on both protocols with both
+    ablations and two seeds, and no privileged input in its method options."""
+    cfg = R.make_config(config=str(EXAMPLE))
+    C.check_fair(cfg, str(EXAMPLE))
+    assert_fair(cfg, cfg.preset)
+    assert set(cfg.methods) == set(C.METHODS) and set(cfg.protocols) == {"simple", "hard"}
+    assert cfg.ablations.segmentation and cfg.ablations.fuse_stages and cfg.ablations.voting_3d
+    rows = {r["row"] for r in R.plan(cfg)["runs"]}
+    assert {f"{m}_{p}" for m in ("hff6dof", "hff6dof-3d", "pvnet", "densefusion", "ffb6d")
+            for p in ("simple", "hard")} | {"hff6dof_noseg_hard", "segnet_hard", "hff6dof_fuse1_hard"} <= rows
+
+
+def assert_fair(cfg, preset: str) -> None:
     runs = R.plan(cfg)["runs"]
     size = tuple(cfg.train.image_size)
     # the same images seen, at the same size (one train.image_size for all), by every row and seed;
@@ -69,7 +89,6 @@ def test_every_compared_row_gets_the_same_budget_candidates_and_seeds(preset):
             noseg = next(r for r in runs if r["name"] == f"hff6dof_noseg_hard_s{seed}")
             assert 0 < seg["images_seen"] < cfg.train.images
             assert seg["images_seen"] + noseg["images_seen"] == cfg.train.images
-    assert size == tuple(R.make_config(preset).train.image_size)
     # the same number of candidate sets chosen on validation for every compared row (2, or 1 = none)
     mains = [r for r in runs if r["candidates"]]
     assert {r["candidates"] for r in mains} == ({2} if preset in C.CHOOSING_PRESETS else {1})
