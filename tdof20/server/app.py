@@ -10,7 +10,8 @@ API (JSON; ``Authorization: Bearer TOKEN``; schema at /openapi.json)::
     GET  /api/leaderboard?split=&metric=  public scored submissions, best first
 
 Pages: ``/`` leaderboard, ``/signin`` (name + token), ``/submit`` (upload form), ``/mine``,
-``/s/{uid}`` (status, refreshing while queued; results: per-object table, per scene, plots),
+``/s/{uid}`` (status, refreshing while queued; results: per-object table, per scene, figures
+drawn when first asked for, :mod:`~tdof20.server.figures`), ``/s/{uid}/plots/{name}`` (a figure),
 ``/s/{uid}/withdraw`` (pages are left out of the OpenAPI schema, which is the API's). Every
 form carries a CSRF token (the session's; the sign-in form's is a
 double-submit cookie). Every refusal is one line: JSON ``{"detail": "..."}`` from the API.
@@ -30,6 +31,7 @@ from tdof20.server import auth, submissions as subs
 from tdof20.server.config import ServerConfig
 from tdof20.server.db import init_db, make_engine
 from tdof20.server.facts import DatasetFacts
+from tdof20.server.figures import figures
 from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
 
 TEMPLATES = Path(__file__).with_name("templates")
@@ -261,7 +263,8 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
 
     @app.get("/s/{uid}", response_class=HTMLResponse, include_in_schema=False)
     def submission_page(request: Request, uid: str):
-        return page(request, "submission.html", {"s": subs.get(engine, uid, page_user(request))})
+        s = subs.get(engine, uid, page_user(request))
+        return page(request, "submission.html", {"s": s, "plots": plots_of(s)})
 
     @app.post("/s/{uid}/withdraw", include_in_schema=False)
     def withdraw_page(request: Request, uid: str, csrf: str = Form("")):
@@ -270,10 +273,14 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         subs.withdraw(engine, uid, user)
         return RedirectResponse(f"/s/{uid}", status_code=303)
 
+    def plots_of(s: dict) -> list[str]:
+        """A scored submission's figures (drawn and cached at the first request); [] before."""
+        return figures(store.results_dir(s["uid"]), s["method"], s["result"]) if s["result"] else []
+
     @app.get("/s/{uid}/plots/{name}", include_in_schema=False)
     def plot(request: Request, uid: str, name: str) -> Response:
         s = subs.get(engine, uid, page_user(request))
-        if not s["result"] or name not in s["result"]["plots"]:
+        if name not in plots_of(s):  # (a name from the list: never a path the request made)
             raise Refused(404, "no such plot")
         return FileResponse(store.results_dir(s["uid"]) / name, media_type="image/png")
 

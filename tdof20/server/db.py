@@ -85,7 +85,7 @@ submissions = Table(
     Column("scored", Float),
     Column("scored_count", Integer, nullable=False, default=0),
     Column("error", Text),  # shown to the owner (no label in it)
-    Column("result", Text))  # the summary JSON and plot names
+    Column("result", Text))  # the summary JSON, warnings, object and scene names
 jobs = Table(
     "jobs", metadata,
     Column("id", Integer, primary_key=True),

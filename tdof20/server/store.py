@@ -1,4 +1,5 @@
-"""The file store: DATA/submissions/<uid>.csv and DATA/results/<uid>/ (plots). An upload is
+"""The file store: DATA/submissions/<uid>.csv and DATA/results/<uid>/ (what the figures are drawn
+from, and the figures once drawn: :mod:`tdof20.server.figures`). An upload is
 copied in bounded chunks to a temp file in DATA/tmp/ (its size and longest line checked as it
 comes), fsynced, and renamed to its final name — a name the server makes, never the uploaded
 one — so nothing is written outside the store and a half-written file is never taken as stored.

@@ -1,5 +1,6 @@
 """``tdof20 serve worker``: claim a queued submission, score it with the scoring package's
-:func:`~tdof20.scoring.evaluate` against the full dataset, write its plots to the store and record
+:func:`~tdof20.scoring.evaluate` against the full dataset, keep what its figures are drawn from in
+the store (:mod:`tdof20.server.figures`: the server draws them when first asked for) and record
 the result — only while the claim is still this worker's (:func:`tdof20.server.db.finish_job`).
 A thread renews the lease while the scorer runs; a worker killed mid-score leaves a lease that
 expires, and another worker (or this one restarted) scores the submission again from its file.
@@ -33,6 +34,7 @@ from tdof20.scoring.dataset_view import DatasetView
 from tdof20.server.config import ServerConfig
 from tdof20.server.db import Claim, claim_job, finish_job, heartbeat, init_db, make_engine, submissions
 from tdof20.server.facts import validation_targets
+from tdof20.server.figures import save_figure_data
 from tdof20.server.store import Store
 
 FAILED = "scoring failed; the server's operators have the details"
@@ -96,9 +98,9 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
             else:
                 ev = evaluate(path, cfg.dataset, sub.split)
             ev.method = sub.method
-            heartbeat(engine, claim, cfg.lease_s, "plots")
-            plots = [p.name for p in report.write_plots([ev], out)]
-            result = {"summary": ev.summary(), "plots": plots, "warnings": list(ev.warnings),
+            heartbeat(engine, claim, cfg.lease_s, "figure data")
+            save_figure_data(ev, out)
+            result = {"summary": ev.summary(), "warnings": list(ev.warnings),
                       "object_names": {str(k): report.object_name(k, [ev]) for k in ev.objects},
                       "scene_names": {str(k): v for k, v in ev.scene_labels.items()}}
             if sub.part == "val":

@@ -1,0 +1,120 @@
+"""A scored submission's figures (accuracy curves, BOP recalls), drawn when first asked for.
+
+Why lazily: drawing them with matplotlib takes seconds per submission, which a worker spent on
+every job before recording its result; the queue drains faster when the worker only keeps what
+the figures are drawn from, and a results page nobody opens costs nothing.
+
+The worker writes :data:`FIGURE_DATA` (DATA/results/<uid>/figure_data.npz): each object's
+per-target errors and BOP decisions as the scorer computed them (the arrays of
+:class:`~tdof20.scoring.evaluation.ObjectEval`; errors, never a pose or a label). It lies in the
+store, which no endpoint serves. The first request for the results page or one of its figures
+draws the PNGs with the scoring package's :func:`~tdof20.scoring.report.write_plots` — the same
+figures the worker drew before, curves pooled over all targets, so they show what the page already
+tells — and caches them in the same folder with :data:`FIGURES`, the list of their names.
+
+Concurrent requests: in one process drawing is serialised by a lock (pyplot is not thread-safe)
+and a request that waited finds the figures drawn; across processes (several servers sharing the
+store) each draws into a temp folder of its own and renames each PNG into place, then writes the
+list last, so a reader sees either no list or a list whose PNGs are whole."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import sys
+import tempfile
+import threading
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from tdof20.formats.io import atomic_write_bytes
+from tdof20.scoring import report
+from tdof20.scoring.evaluation import Evaluation, ObjectEval
+
+FIGURE_DATA = "figure_data.npz"
+FIGURES = "figures.json"
+ARRAYS = ("add", "adds", "proj", "add_ok", "adds_ok", "proj_ok", "adds_exact", "scene")
+_DRAW = threading.Lock()
+
+
+def save_figure_data(ev: Evaluation, folder: Path) -> Path:
+    """Keep what ``ev``'s figures are drawn from in ``folder`` (atomically; replaces an older one)."""
+    arrays: dict[str, np.ndarray] = {}
+    objects = []
+    for oid, o in ev.objects.items():
+        objects.append({"obj_id": int(oid), "diameter": float(o.diameter), "symmetric": bool(o.symmetric),
+                        "auc_se": float(o.auc_se), "keys": list(o.keys), "bop": sorted(o.bop)})
+        for name in ARRAYS:
+            arrays[f"o{int(oid)}_{name}"] = np.asarray(getattr(o, name))
+        for k, v in o.bop.items():
+            arrays[f"o{int(oid)}_bop_{k}"] = np.asarray(v)
+    meta = {"keys": list(ev.keys), "proj_px": ev.proj_px, "objects": objects,
+            "object_labels": {str(k): v for k, v in (ev.object_labels or {}).items()}}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    path = Path(folder) / FIGURE_DATA
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def load_figure_data(path: Path, method: str) -> Evaluation:
+    """The :class:`Evaluation` (without warnings and timings) that :func:`save_figure_data` kept."""
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(z["meta"].tobytes())
+        objects = {}
+        for m in meta["objects"]:
+            oid = m["obj_id"]
+            a = {name: z[f"o{oid}_{name}"] for name in ARRAYS}
+            objects[oid] = ObjectEval(oid, m["diameter"], m["symmetric"], a["add"], a["adds"], a["proj"], a["add_ok"],
+                                      a["adds_ok"], a["proj_ok"], a["adds_exact"], auc_se=m["auc_se"], scene=a["scene"],
+                                      bop={k: z[f"o{oid}_bop_{k}"] for k in m["bop"]}, keys=tuple(m["keys"]))
+    # a '$' would start matplotlib's mathtext in the legend (and an odd one fail the drawing): escaped
+    return Evaluation(method.replace("$", r"\$"), objects, [], {}, keys=tuple(meta["keys"]),
+                      object_labels={int(k): v for k, v in meta["object_labels"].items()}, proj_px=meta["proj_px"])
+
+
+def _listed(folder: Path) -> list[str] | None:
+    """The names in the figure list when it and every PNG it names are there."""
+    try:
+        names = json.loads((folder / FIGURES).read_text())
+    except (OSError, ValueError):
+        return None
+    if isinstance(names, list) and all(isinstance(n, str) and (folder / n).is_file() for n in names):
+        return names
+    return None
+
+
+def figures(folder: Path, method: str, result: dict) -> list[str]:
+    """The names of a scored submission's figures in ``folder`` (its results folder), drawing them
+    first where they are not there yet. A result scored by a worker that drew its figures itself
+    (tdof20 before lazy figures) lists them in ``result["plots"]``. [] when there is nothing to draw
+    from or the drawing failed (logged; the page shows its tables without figures)."""
+    folder = Path(folder)
+    names = _listed(folder)
+    if names is not None:
+        return names
+    data = folder / FIGURE_DATA
+    if not data.is_file():
+        return [n for n in result.get("plots", []) if (folder / n).is_file()]
+    with _DRAW:
+        names = _listed(folder)  # drawn while this request waited
+        if names is not None:
+            return names
+        try:
+            ev = load_figure_data(data, method)
+            with tempfile.TemporaryDirectory(prefix=".drawing-", dir=folder) as tmp:
+                names = [p.name for p in report.write_plots([ev], tmp)]
+                for n in names:
+                    os.replace(Path(tmp) / n, folder / n)
+            atomic_write_bytes(folder / FIGURES, json.dumps(names).encode())
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+            print(f"server: figures of {folder.name}: {type(e).__name__}: {e}", file=sys.stderr)
+            return []
+    return names
+
+
+__all__ = ["FIGURES", "FIGURE_DATA", "figures", "load_figure_data", "save_figure_data"]
