@@ -129,7 +129,8 @@ def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConf
     ``schedule`` ({"epochs", "steps", "batch", "seed"}: :func:`run_schedule` of the run's budget, and
     its seed); with ``stop_epoch`` the call ends after that epoch (the schedule still spans all
     the steps). ``options``: the run's options of the method's config (an ablation's
-    ``fuse_stages``, ``vector_origin``, ...) over ``[method_options.<method>]``."""
+    ``fuse_stages``, ``vector_origin``, ...) over ``[method_options.<method>]``. The run's last
+    checkpoint keeps the weights, not the optimiser's state (``keep_optimizer=False``)."""
     from tdof20.methods.train import train  # imports torch
 
     t = cfg.train
@@ -137,7 +138,7 @@ def train_run(root: Path, split: str, run: Path, method: str, cfg: ReproduceConf
                  method_options=options, image_size=tuple(t.image_size), batch_size=int(schedule["batch"]),
                  epochs=int(schedule["epochs"]), lr=t.lr, max_steps=int(schedule["steps"]),
                  num_workers=t.num_workers, seed=int(schedule["seed"]), device=cfg.device, progress=show,
-                 part="train-val", stop_epoch=stop_epoch)
+                 part="train-val", stop_epoch=stop_epoch, keep_optimizer=False)
 
 
 def predict_run(run: Path, root: Path, split: str, out_csv: Path, cfg: ReproduceConfig, show: bool,
@@ -361,7 +362,7 @@ def _keep(run: Path, step: int) -> Path:
     kept = run / KEPT
     if (kept / "kept.json").exists() and read_json(kept / "kept.json").get("step") == step:
         return kept
-    ck = read_checkpoint(run / "last.pt", needs=("model", "epoch", "step"))
+    ck = read_checkpoint(run / "last.pt", needs=("model", "epoch", "step"), mmap=True)  # the weights only
     if int(ck["step"]) != step:
         raise TdofError(f"holds step {int(ck['step'])}, but the validation-best checkpoint is step {step}: delete the "
                         "run folder to train it again", run / "last.pt")
@@ -589,7 +590,9 @@ def _ray_job(out: Path, root: Path, cfg: ReproduceConfig, spec: dict, jobs: dict
 
 def _finish(state: State, spec: dict, seconds: float, cpu: float, info: dict) -> None:
     state.finish(spec["name"], seconds, stage=spec["stage"], cpu_seconds=round(cpu, 2), **info)
-    if spec["stage"] == "train":  # over: its optimiser state is two thirds of the checkpoint, and dead
+    if spec["stage"] == "train":  # over: its optimiser state is two thirds of the checkpoint, and dead;
+        # train_run's last save left it out already (keep_optimizer=False): this drops it from a run
+        # an older tdof20 trained, and otherwise only checks and maps the file (no tensor read, nothing written)
         from tdof20.methods.runs import drop_optimizer  # imports torch
 
         drop_optimizer(info["run"])

@@ -10,6 +10,8 @@ describe, opened; the run's weights digest; the optimiser state dropped once a t
                           depth mode, the split, the dataset and the training options, and whatever
                           the method records of its own (:meth:`~tdof20.methods.contract.PoseMethod.run_record`)
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
+                          (the weights, counters and history only once a training is over: drop_optimizer,
+                          train's keep_optimizer=False)
 
 Runs written before the interface (HFF6DoF's config.json without "method_config") still open: the
 method rebuilds its config from what they recorded (its ``config_from_run``).
@@ -18,12 +20,18 @@ method rebuilds its config from what they recorded (its ``config_from_run``).
 from __future__ import annotations
 
 import hashlib
+import mmap
 import os
+import struct
 import zipfile
+from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
+from isal import isal_zlib
+from torch.overrides import TorchFunctionMode
 
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
@@ -96,6 +104,41 @@ def _load_failure(e: BaseException) -> str:
     return f"damaged or not a torch checkpoint ({type(e).__name__}: {text[:80]})"
 
 
+_LOCAL_HEADER = struct.Struct("<4s22xHH")  # a zip member's local header: signature .. name and extra lengths
+
+
+def _damaged_member(path: Path) -> str | None:
+    """The first member of the zip archive at ``path`` whose bytes run past the end of the file or
+    do not match the CRC-32 its central directory records; None when every member is whole.
+
+    torch.save stores its members uncompressed: each is checksummed where it lies, through a
+    memory map, by ISA-L's CRC-32 (about 3x zlib's; zipfile.testzip also copied every byte through
+    its reader), so the check costs little more than the one read of the file a load needs anyway,
+    and the pages it reads are the ones ``torch.load(mmap=True)`` then maps. A compressed member
+    (not torch's) is read through zipfile, which checks its CRC."""
+    with open(path, "rb") as f, zipfile.ZipFile(f) as z:
+        size = os.fstat(f.fileno()).st_size
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m, memoryview(m) as view:
+            for info in z.infolist():
+                if info.compress_type != zipfile.ZIP_STORED:
+                    try:
+                        with z.open(info) as member:
+                            while member.read(1 << 24):
+                                pass
+                    except zipfile.BadZipFile:
+                        return info.filename
+                    continue
+                if info.header_offset + _LOCAL_HEADER.size > size:
+                    return info.filename
+                magic, n_name, n_extra = _LOCAL_HEADER.unpack_from(view, info.header_offset)
+                start = info.header_offset + _LOCAL_HEADER.size + n_name + n_extra
+                if magic != b"PK\x03\x04" or start + info.compress_size > size:
+                    return info.filename
+                if isal_zlib.crc32(view[start:start + info.compress_size]) != info.CRC:
+                    return info.filename
+    return None
+
+
 def read_checkpoint(path: str | Path, needs: tuple[str, ...] = ("model",), advice: str = "",
                     mmap: bool = False) -> dict:
     """The dict a run's last.pt holds, loaded on the CPU without running any code from the file
@@ -118,9 +161,8 @@ def read_checkpoint(path: str | Path, needs: tuple[str, ...] = ("model",), advic
                "not a torch checkpoint: not the zip archive torch.save writes")
         raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; {why}){advice}", path)
     try:  # torch.load does not check the zip's CRCs: a damaged weight would load as garbage
-        with zipfile.ZipFile(path) as z:
-            bad = z.testzip()
-    except (OSError, zipfile.BadZipFile, EOFError) as e:
+        bad = _damaged_member(path)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, struct.error) as e:
         bad = f"? ({type(e).__name__})"
     if bad is not None:
         raise TdofError(f"cannot be read as a checkpoint ({_size_text(size)}; damaged: its member {bad} fails "
@@ -196,6 +238,67 @@ def run_classes(config: dict) -> list[int]:
     return [int(c) for c in classes]
 
 
+class _UninitialisedOnMeta(TorchFunctionMode):
+    """``torch.empty`` without a device makes its tensor on the meta device (shapes only).
+
+    torch.nn's layers make their parameters with ``torch.empty`` and then initialise them in place
+    (kaiming_uniform_, ...): under this mode those parameters live on the meta device and their
+    initialisation costs nothing (HFF6DoF's two ResNet-34 encoders, ~43 M weights, took ~3 s of
+    random numbers that a loaded checkpoint overwrote). Tensors made with values (``torch.tensor``,
+    ``zeros``, ``ones``, ``arange``: the non-persistent buffers such as the ImageNet mean, a class
+    look-up table) stay real, unlike under ``with torch.device("meta")``, where their values would
+    be lost with no checkpoint to restore them from."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func is torch.empty and kwargs.get("device") is None:
+            kwargs["device"] = "meta"
+        return func(*args, **kwargs)
+
+
+def _meta_tensors(net: torch.nn.Module) -> list[str]:
+    """Names of the network's parameters, buffers and plain tensor attributes on the meta device."""
+    found = [k for k, t in [*net.named_parameters(), *net.named_buffers()] if t.is_meta]
+    for prefix, module in net.named_modules():
+        found += [f"{prefix}.{k}".lstrip(".") for k, v in vars(module).items()
+                  if isinstance(v, torch.Tensor) and v.is_meta]
+    return found
+
+
+def network_with_weights(build: Callable[[], torch.nn.Module], state: dict, device: str | torch.device = "cpu",
+                         check: Callable[[torch.nn.Module], None] | None = None) -> torch.nn.Module | None:
+    """The network ``build()`` makes, with the weights ``state`` (a state dict: every parameter and
+    persistent buffer, as check_weights ensures) on ``device``, without computing the random
+    initial weights that ``state`` replaces (:class:`_UninitialisedOnMeta`); ``check(net)`` first
+    (on the weightless network: a one-line error for weights that do not fit it).
+
+    Each weight is copied into a tensor of the network's own dtype and (contiguous) layout, as
+    ``load_state_dict`` copies into a network built for real: the network is the same, bit for bit,
+    and owns its memory (not a map of the checkpoint's file, which may be replaced or cut short
+    while it is in use). None when a tensor stays on the meta device (a method whose build fills a
+    ``torch.empty`` buffer that is no weight): the caller then builds the network for real."""
+    try:
+        with _UninitialisedOnMeta():
+            net = build()
+    except Exception:  # noqa: BLE001 - an op without a meta kernel (or bad options: the real build says which)
+        return None
+    if check is not None:
+        check(net)
+    device = torch.device(device)
+    own = net.state_dict(keep_vars=True)
+    weights = OrderedDict()
+    for k, v in state.items():
+        mine = own.get(k)
+        if mine is None:  # check_weights refuses extra weights; without a check, load_state_dict does
+            weights[k] = v
+            continue
+        weights[k] = torch.empty(mine.shape, dtype=mine.dtype, device=device).copy_(v)
+    if hasattr(state, "_metadata"):  # the modules' state-dict versions (BatchNorm's num_batches_tracked)
+        weights._metadata = state._metadata
+    net.load_state_dict(weights, assign=True)
+    return None if _meta_tensors(net) else net.to(device)  # the buffers that are no weights move too
+
+
 class Run(NamedTuple):
     """A trained run, opened: its method, the method's config, the network (last weights, eval
     mode), the meta and the run's config.json."""
@@ -218,10 +321,19 @@ def open_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Run:
     advice = ": restore it from a copy, or train a new run into another --out"
     config = read_run_config(run_dir)
     ckpt = read_checkpoint(run_dir / CHECKPOINT, advice=advice, mmap=True)
-    method, cfg, net, meta = open_config(config, run_dir / CONFIG)
-    check_weights(net, ckpt, config, run_dir / CHECKPOINT, advice)
-    net.load_state_dict(ckpt["model"])
-    return Run(method, cfg, net.to(device).eval(), meta, config)
+    method = run_method(config, run_dir / CONFIG)
+    cfg, meta = method.config_from_run(config, run_dir / CONFIG)
+
+    def check(net: torch.nn.Module) -> None:
+        check_weights(net, ckpt, config, run_dir / CHECKPOINT, advice)
+
+    net = network_with_weights(lambda: method.build(cfg, meta), ckpt["model"], device, check)
+    if net is None:  # the method's network does not build without its initial weights: as it was
+        method, cfg, net, meta = open_config(config, run_dir / CONFIG)
+        check(net)
+        net.load_state_dict(ckpt["model"])
+        net = net.to(device)
+    return Run(method, cfg, net.eval(), meta, config)
 
 
 def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[torch.nn.Module, dict]:
@@ -281,9 +393,12 @@ def drop_optimizer(run: str | Path) -> int:
     is over: the weights, counters, history and config stay, so predict, score and the tables read
     it as before, while AdamW's two moments per weight (two thirds of the file: HFF6DoF's 650 MB
     become 220 MB) go. Such a run cannot be trained on. Returns the bytes saved (0 when there was
-    nothing to drop)."""
+    nothing to drop).
+
+    A run trained with ``keep_optimizer=False`` (reproduce's) has no optimiser state left at its
+    end: the file is then checked and mapped, its tensors not loaded, and nothing is written."""
     path = Path(run) / CHECKPOINT
-    ckpt = read_checkpoint(path, needs=("model", "epoch", "step"))
+    ckpt = read_checkpoint(path, needs=("model", "epoch", "step"), mmap=True)
     if "optimizer" not in ckpt and "scaler" not in ckpt:
         return 0
     before = path.stat().st_size

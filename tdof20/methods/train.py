@@ -14,6 +14,7 @@ A run folder holds everything needed to resume and to predict (read and checked 
                           the split, the dataset and the training options (what predict rebuilds the
                           network from), and what the method records of its own (``run_record``)
     RUN/last.pt           model, optimiser (and AMP scaler) state, epoch and step counters, loss history
+                          (no optimiser state once a run trained with keep_optimizer=False has ended)
     RUN/history.json      per-epoch losses, learning rate, images/s, seconds spent waiting for the
                           loader (data_seconds) and CPU seconds of the process (several processes:
                           each one's weights digest at the end, which must agree)
@@ -254,6 +255,8 @@ def _meta_json(meta) -> dict:
 
 
 _METHOD_DEFAULT = "method"
+_WEIGHTS_ONLY = ("holds the weights only (its training ended and its optimiser state was dropped, as reproduce "
+                 "does): train into another --out")
 
 
 def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: str = DEFAULT_METHOD,
@@ -264,7 +267,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
           shard: str | Path | None = None,
           save_every_s: float = 600.0, progress: bool = True, cache_dir: str | Path | None = None,
           part: str = "train", images: list[tuple[int, int]] | None = None,
-          stop_epoch: int | None = None, method_options: Mapping | None = None, **options) -> Path:
+          stop_epoch: int | None = None, keep_optimizer: bool = True, method_options: Mapping | None = None,
+          **options) -> Path:
     """Train (or resume training) ``method`` on the train part of ``split`` of the dataset at
     ``dataset_root``; returns the run folder ``out_run``.
 
@@ -293,6 +297,11 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
     comes first), with a checkpoint; the learning-rate schedule still spans ``epochs`` (or
     ``max_steps``), so calling again with a larger ``stop_epoch`` continues the very same run: how a
     caller validates each epoch's checkpoint (``tdof20 reproduce`` keeps the validation-best one).
+    keep_optimizer: False = the checkpoint written when the run reaches its end (the last step of
+    ``epochs`` or ``max_steps``) leaves out the optimiser's (and AMP scaler's) state, two thirds of
+    the file, as :func:`~tdof20.methods.runs.drop_optimizer` would, without reading and writing the
+    file again (``tdof20 reproduce``'s runs): the run is then predicted and scored, and calling
+    train on it again is a no-op while it asks for no further step, refused once it does.
 
     Any dataset layout (tdof20's, BOP's: ``split`` is then a split folder such as 'train_pbr') and
     any object ids: classes 1..n map to the dataset's objects (the run's meta; a tdof20 dataset
@@ -359,9 +368,18 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                       "--out")
             saved = read_run_config(out_run, advice)
             ckpt = read_checkpoint(ckpt_path, needs=("model", "epoch", "step", "history"), advice=advice)
-            if "optimizer" not in ckpt:
-                raise TdofError("holds the weights only (its training ended and its optimiser state was dropped, "
-                                "as reproduce does): train into another --out", ckpt_path)
+            try:
+                ckpt_epoch, ckpt_step = int(ckpt["epoch"]), int(ckpt["step"])
+                ckpt_history = list(ckpt["history"])
+            except (TypeError, ValueError):
+                raise TdofError(f"its epoch, step or history is not what train writes{advice}", ckpt_path) from None
+            # a run whose optimiser state was dropped at its end trains no further; a call that asks for
+            # no further step (its epochs, max_steps or stop_epoch already reached) is the no-op it
+            # was before the drop (a resumed tdof20 reproduce makes such calls)
+            if "optimizer" not in ckpt and not (
+                    ckpt_epoch >= epochs or (max_steps is not None and ckpt_step >= int(max_steps))
+                    or (stop_epoch is not None and ckpt_epoch >= int(stop_epoch))):
+                raise TdofError(_WEIGHTS_ONLY, ckpt_path)
             with torch.device("meta"):  # shapes only: nothing is allocated
                 saved_m, _, saved_net, saved_meta = open_config(saved, out_run / CONFIG)
                 check_weights(saved_net, ckpt, saved, ckpt_path, advice)
@@ -377,11 +395,6 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
             with torch.device("meta"):
                 early.update(m.run_record(m.build(cfg, saved_meta)))
             _check_same(saved, early, out_run / CONFIG)
-            try:
-                ckpt_epoch, ckpt_step = int(ckpt["epoch"]), int(ckpt["step"])
-                ckpt_history = list(ckpt["history"])
-            except (TypeError, ValueError):
-                raise TdofError(f"its epoch, step or history is not what train writes{advice}", ckpt_path) from None
     except TdofError as e:
         # each process of a launch meets the same refusal here, before the processes meet: the
         # command line lets process 0 alone print it
@@ -455,14 +468,17 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                                 fused=dev.type in ("cpu", "cuda"))
         scaler = torch.amp.GradScaler("cuda", enabled=use_amp and amp_dtype(dev) == torch.float16)
         epoch, step, history, epochs_log = 0, 0, [], []
+        weights_only = False  # resumed from a checkpoint without the optimiser's state
         if resume:
-            try:  # moves AdamW's moments to the parameters' device
-                opt.load_state_dict(ckpt["optimizer"])
+            try:  # moves AdamW's moments to the parameters' device (a run over has none: it trains no more)
+                if "optimizer" in ckpt:
+                    opt.load_state_dict(ckpt["optimizer"])
                 if ckpt.get("scaler") and scaler.is_enabled():
                     scaler.load_state_dict(ckpt["scaler"])
             except (ValueError, KeyError, TypeError, RuntimeError) as e:
                 raise TdofError(f"its optimiser state does not fit the network ({type(e).__name__}: "
                                 f"{(str(e).splitlines() or [''])[0][:80]}){advice}", ckpt_path) from None
+            weights_only = "optimizer" not in ckpt
             epoch, step, history = ckpt_epoch, ckpt_step, ckpt_history
             epochs_log = list(ckpt.get("epochs") or [])
             for g in opt.param_groups:  # the options of this call win (lr, weight decay)
@@ -496,6 +512,8 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
         warmup = min(200, total // 20)
         # where this call ends: the run's end, or the end of epoch stop_epoch (the schedule spans total)
         limit = total if stop_epoch is None else min(total, int(stop_epoch) * steps_per_epoch)
+        if weights_only and step < limit:  # the early check's counters disagree (another number of processes)
+            raise TdofError(_WEIGHTS_ONLY, ckpt_path)
         sampler = torch.utils.data.DistributedSampler(tdata, num_replicas=world, rank=rank, shuffle=True,
                                                       seed=seed, drop_last=True)
         if main and show:
@@ -505,15 +523,22 @@ def train(dataset_root: str | Path, split: str, out_run: str | Path, *, method: 
                           + (f", resuming at epoch {epoch}, step {step}" if resume else ""), markup=False)
 
         last_save = [time.perf_counter()]
+        # what check_weights compares (method, options, image size, depth, keypoints), without the
+        # meta's model samples (config.json keeps them): a third of a megabyte of pickle that every
+        # reader of last.pt unpickled in pure Python (weights_only), more than its weights cost
+        ckpt_config = {k: v for k, v in config.items() if k != "meta"}
 
         def save(processes: dict | None = None) -> None:
             last_save[0] = time.perf_counter()
             if not main:
                 return
-            save_atomic({"model": net.state_dict(), "optimizer": opt.state_dict(),
-                          "scaler": scaler.state_dict() if scaler.is_enabled() else None,
-                          "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
-                          "config": config}, ckpt_path)
+            # the run's end without keep_optimizer: the weights, counters and history only
+            over = weights_only or (not keep_optimizer and step >= total)
+            save_atomic({"model": net.state_dict(),
+                         **({} if over else {"optimizer": opt.state_dict(),
+                                             "scaler": scaler.state_dict() if scaler.is_enabled() else None}),
+                         "epoch": epoch, "step": step, "history": history, "epochs": epochs_log,
+                         "config": ckpt_config}, ckpt_path)
             write_json(out_run / "history.json", {"epochs": epochs_log, "steps": step, "total_steps": total,
                                                    "steps_per_epoch": steps_per_epoch,
                                                    **({"processes": processes} if processes else {})})

@@ -26,6 +26,14 @@ UR5_D = np.array([89.159, 0.0, 0.0, 109.15, 94.65, 82.3])
 UR5_A = np.array([0.0, -425.0, -392.25, 0.0, 0.0, 0.0])
 UR5_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 UR5_REACH_MM = 850.0
+#: the shoulder (the origin of joint 2's frame: joint 1 turns about it) in the base frame, mm
+UR5_SHOULDER = np.array([0.0, 0.0, UR5_D[0]])
+#: the farthest the tool flange (T_base_tcp's origin) gets from the shoulder, mm: joints 2-4 turn
+#: about parallel axes (alpha 0), so the upper arm and forearm (a2, a3) lie in a plane normal to
+#: them and the offsets d2..d4 along them; the wrist's offsets (a4..a6, d5, d6) add at most their
+#: lengths. 1001 mm for the UR5: a bound, never less than what the arm reaches.
+UR5_FLANGE_REACH_MM = float(np.hypot(abs(UR5_A[1]) + abs(UR5_A[2]), abs(UR5_D[1] + UR5_D[2] + UR5_D[3]))
+                            + np.abs(UR5_A[3:]).sum() + np.abs(UR5_D[4:]).sum())
 
 
 def ur5_fk(q: np.ndarray) -> np.ndarray:
@@ -42,9 +50,16 @@ def ur5_fk(q: np.ndarray) -> np.ndarray:
 
 
 def ur5_ik(T_target: np.ndarray, q_seed: np.ndarray, tol_mm: float = 1e-3) -> np.ndarray:
-    """Numerical inverse kinematics near ``q_seed`` (rad). Raises ValueError if unreachable."""
+    """Numerical inverse kinematics near ``q_seed`` (rad). Raises ValueError if unreachable: at
+    once for a flange farther from the shoulder than the arm reaches (:data:`UR5_FLANGE_REACH_MM`),
+    where the search (8 starts of up to 2,000 evaluations) could only fail."""
     T_target = np.asarray(T_target, dtype=float)
     R_t = T_target[:3, :3]
+    dist = float(np.linalg.norm(T_target[:3, 3] - UR5_SHOULDER))
+    # the largest position residual is at least the distance beyond the reach over sqrt(3)
+    if not dist - UR5_FLANGE_REACH_MM <= np.sqrt(3.0) * tol_mm:  # (NaN: no pose either)
+        raise ValueError(f"UR5 cannot reach the target pose (its flange {dist:.0f} mm from the shoulder, "
+                         f"the arm reaches {UR5_FLANGE_REACH_MM:.0f} mm)")
 
     def residual(q):
         T = ur5_fk(q)
