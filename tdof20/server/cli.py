@@ -10,12 +10,12 @@ from typing import Optional
 import typer
 
 from tdof20.errors import TdofError
-from tdof20.server import auth
 from tdof20.server.client import submit
 from tdof20.server.config import DAILY_LIMIT, LEASE_S, MAX_UPLOAD_BYTES, ServerConfig
-from tdof20.server.db import init_db, make_engine
 from tdof20.server.publish import publish
-from tdof20.server.worker import run_worker
+
+# the database, accounts and worker (sqlalchemy, argon2, the scorer: ~1 s of imports) are imported
+# inside the commands that use them, so that every other ``tdof20`` command starts without them
 
 DATA_HELP = "the server's folder: file store (and server.db when --db is not given)"
 DB_HELP = "database URL: sqlite:///PATH (default DATA/server.db) or postgresql://USER@HOST/DB"
@@ -61,12 +61,22 @@ def worker(dataset: Path = typer.Option(..., help="the full dataset (with test l
            poll: float = typer.Option(1.0, help="seconds between looks at an empty queue"),
            pause: float = typer.Option(0.0, help="seconds to wait after claiming a job (for drills)")) -> None:
     """Score queued submissions (any number of workers, sharing the database and DATA)."""
+    from tdof20.server.worker import run_worker  # the database and the scorer
+
     n = run_worker(ServerConfig(dataset=dataset, data=data, db=db, lease_s=lease), once=once, poll_s=poll,
                    pause_s=pause)
     typer.echo(f"scored {n} submission(s)")
 
 
+def _auth():
+    from tdof20.server import auth  # argon2, sqlalchemy
+
+    return auth
+
+
 def _engine(data: Path, db: Optional[str]):
+    from tdof20.server.db import init_db, make_engine  # sqlalchemy
+
     engine = make_engine(ServerConfig(dataset=Path("."), data=data, db=db).db_url)
     Path(data).mkdir(parents=True, exist_ok=True)
     init_db(engine)
@@ -77,21 +87,21 @@ def _engine(data: Path, db: Optional[str]):
 def user_add(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
              db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
     """Add a user and print its API token (shown once; only its hash is stored)."""
-    typer.echo(auth.add_user(_engine(data, db), name))
+    typer.echo(_auth().add_user(_engine(data, db), name))
 
 
 @user_app.command("token")
 def user_token(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
                db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
     """Give a user a new token (the old one stops working) and print it."""
-    typer.echo(auth.new_token(_engine(data, db), name))
+    typer.echo(_auth().new_token(_engine(data, db), name))
 
 
 @user_app.command("revoke")
 def user_revoke(name: str, data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
                 db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
     """Revoke a user's token and end its sessions."""
-    auth.revoke_user(_engine(data, db), name)
+    _auth().revoke_user(_engine(data, db), name)
     typer.echo(f"revoked {name}")
 
 
@@ -99,7 +109,7 @@ def user_revoke(name: str, data: Path = typer.Option(Path("tdof20_server"), help
 def user_list(data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
               db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
     """The users, and which are revoked."""
-    for u in auth.list_users(_engine(data, db)):
+    for u in _auth().list_users(_engine(data, db)):
         typer.echo(f"{u['name']}{'  (revoked)' if u['revoked'] else ''}")
 
 
