@@ -21,7 +21,6 @@ import socket
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
@@ -29,9 +28,9 @@ from tdof20.annotate.batch import SUMMARY, annotate_many, batch_text, plan_batch
 from tdof20.annotate.config import load_annotate_config
 from tdof20.annotate.pipeline import annotate
 from tdof20.capture import run_capture, sim_config
-from tdof20.cli import main
 from tdof20.errors import TdofError
 from tdof20.formats import read_json
+from tests.cli_support import run_here
 
 EXE = [sys.executable, "-m", "tdof20.cli"]
 TOML = "[label]\ngate = false\nchunk = 3\n[place]\nmin_fitness = 0.05\nmax_score_mm = 8.0\n[qa]\nsample = 1\nevaluate = false\n"
@@ -42,19 +41,6 @@ LABEL_FILES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "scen
 def run(*args):
     return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, timeout=600)
 
-
-def run_here(capfd, monkeypatch, *args):
-    """``tdof20 ARGS`` through the console script's entry point (``tdof20.cli.main``) in this
-    process — its exit code and what it printed, as :func:`run` gives them — for the calls whose
-    subject is not the subprocess (each subprocess costs ~3 s of imports)."""
-    capfd.readouterr()
-    monkeypatch.setattr(sys, "argv", ["tdof20", *map(str, args)])
-    with pytest.raises(SystemExit) as e:
-        main()
-    out = capfd.readouterr()
-    code = e.value.code
-    return SimpleNamespace(returncode=code if isinstance(code, int) else (0 if code is None else 1),
-                           stdout=out.out, stderr=out.err)
 
 
 def one_line_error(res, *needles):

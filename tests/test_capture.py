@@ -6,7 +6,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,9 +13,9 @@ import pytest
 from tdof20.capture import config_from_dict, load_config, run_capture, sim_config, verify_session
 from tdof20.capture.plan import describe, workspace_problems
 from tdof20.capture.rig import build_rig
-from tdof20.cli import main
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_journal, read_png, sha256_file
+from tests.cli_support import run_here
 
 SIM_ARGS = ["--sim", "--scene", "multi/03", "--steps", "30", "--step-deg", "12", "--arm-positions", "2",
             "--width", "96", "--height", "72"]
@@ -59,18 +58,6 @@ def reference(tmp_path_factory):
                 show_progress=False)
     return out
 
-
-def run_here(capfd, monkeypatch, *args):
-    """``tdof20 ARGS`` through the console script's entry point (``tdof20.cli.main``) in this
-    process: exit code and output as a subprocess would give them, without its ~3 s of imports."""
-    capfd.readouterr()
-    monkeypatch.setattr(sys, "argv", ["tdof20", *map(str, args)])
-    with pytest.raises(SystemExit) as e:
-        main()
-    out = capfd.readouterr()
-    code = e.value.code
-    return SimpleNamespace(returncode=code if isinstance(code, int) else (0 if code is None else 1),
-                           stdout=out.out, stderr=out.err)
 
 
 def test_sequence_end_to_end(tmp_path):

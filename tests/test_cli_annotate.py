@@ -6,13 +6,12 @@ as one-line errors (the first in a subprocess, the others through the same entry
 import json
 import subprocess
 import sys
-from types import SimpleNamespace
 
 import pytest
 
 from tdof20.capture import run_capture, sim_config
-from tdof20.cli import main
 from tdof20.formats import read_json, read_scene
+from tests.cli_support import run_here
 
 EXE = [sys.executable, "-m", "tdof20.cli"]
 
@@ -20,18 +19,6 @@ EXE = [sys.executable, "-m", "tdof20.cli"]
 def run(*args):
     return subprocess.run(EXE + [str(a) for a in args], capture_output=True, text=True, timeout=600)
 
-
-def run_here(capfd, monkeypatch, *args):
-    """``tdof20 ARGS`` through the console script's entry point in this process: its exit code
-    and what it printed (file-descriptor level, as a subprocess's pipes would hold it)."""
-    capfd.readouterr()
-    monkeypatch.setattr(sys, "argv", ["tdof20", *map(str, args)])
-    with pytest.raises(SystemExit) as e:
-        main()
-    out = capfd.readouterr()
-    code = e.value.code
-    return SimpleNamespace(returncode=code if isinstance(code, int) else (0 if code is None else 1),
-                           stdout=out.out, stderr=out.err)
 
 
 def one_line_error(res, *needles):

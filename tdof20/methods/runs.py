@@ -81,8 +81,13 @@ def open_config(config: dict, path: Path | None = None) -> tuple[Method, Any, to
     """(method, cfg, network with fresh weights, meta) of a run's config.json."""
     method = run_method(config, path)
     cfg, meta = method.config_from_run(config, path)
+    return method, cfg, _build(method, cfg, meta, path), meta
+
+
+def _build(method: Method, cfg: Any, meta: Any, path: Path | None) -> torch.nn.Module:
+    """``method``'s network for ``cfg`` with fresh weights; options that make none: one line."""
     try:
-        return method, cfg, method.build(cfg, meta), meta
+        return method.build(cfg, meta)
     except (ValueError, TypeError, RuntimeError) as e:
         raise TdofError(f"its options do not make a {method.name} network ({e})", path) from None
 
@@ -329,7 +334,7 @@ def open_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Run:
 
     net = network_with_weights(lambda: method.build(cfg, meta), ckpt["model"], device, check)
     if net is None:  # the method's network does not build without its initial weights: as it was
-        method, cfg, net, meta = open_config(config, run_dir / CONFIG)
+        net = _build(method, cfg, meta, run_dir / CONFIG)
         check(net)
         net.load_state_dict(ckpt["model"])
         net = net.to(device)
