@@ -734,7 +734,7 @@ def demo(out: Path = typer.Option(Path("demo_out"), help="folder for everything 
          batch_size: int = typer.Option(4, help="training batch size"),
          device: str = typer.Option("auto", help="auto, cpu, cuda, cuda:N or mps")) -> None:
     """Run the main job end to end on the simulator: capture, annotate, dataset, train, predict and
-    score HFF6DoF and PVNet side by side, OUT/report.md (7 min 49 s measured on 2 idle CPU cores with
+    score HFF6DoF and PVNet side by side, OUT/report.md (7 min 1 s measured on 2 idle CPU cores with
     the defaults, several times that on a busy machine; a rerun resumes)."""
     names = tuple(x.strip() for x in scenes.split(",") if x.strip())
     if not names:

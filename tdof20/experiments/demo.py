@@ -23,8 +23,8 @@ and ``OUT/report.md``: the annotation's accuracy beside the pose scores of the m
 curves. A fair comparison: every method sees the same images (:data:`DEFAULT_IMAGES`, 840 = 210
 steps of 4, 15 epochs of the 56 training images), at the same size, with one seed and nothing
 chosen on its images; HFF6DoF runs the paper's pose recovery (:data:`DEMO_OPTIONS`, chosen on
-validation elsewhere). Measured: 7 min 49 s on 2 idle cores (HFF6DoF's training 264 s, PVNet's
-108 s, annotation 68 s; several times that on a busy machine).
+validation elsewhere). Measured: 7 min 1 s on 2 idle cores (HFF6DoF's training 230 s, PVNet's
+99 s, annotation 74 s; several times that on a busy machine).
 
 The defaults — ``single/juice_cup_340`` (a straight tumbler: trained and scored on) and ``multi/08``
 (a goblet, a tapered juice tumbler, a tall mug and an ice-cream cup, annotated with the CAD models and
@@ -65,7 +65,8 @@ DEFAULT_SCENES = ("single/juice_cup_340", "multi/08")
 DEFAULT_METHODS = ("hff6dof", "pvnet")
 #: the training budget of every method, in images seen (optimiser steps x batch): 840 = 210 steps of
 #: 4, 15 epochs of the defaults' 56 training images (on the 8 test targets, 2026-12-03: HFF6DoF with 3D
-#: voting + LSQ ADD(S) 100 %, AUC 95.6 %; with bearing + PnP 0 %, AUC 80.6 %; PVNet 25 %, AUC 68.8 %).
+#: voting + LSQ ADD(S) 100 %, AUC 95.2 %, PVNet 12.5 %, AUC 72.8 %; before, with bearing + PnP, HFF6DoF
+#: 0 %, AUC 80.6 % beside PVNet's 25 %, 68.8 %).
 #: The same for every method: a comparison at unequal budgets says more of the budgets than of the methods
 DEFAULT_IMAGES = 840
 #: a method's options in the demo other than its defaults: (training options, prediction options).
