@@ -23,6 +23,7 @@ import pytest
 
 from tdof20.experiments import reproduce as R
 from tdof20.experiments import reproduce_config as C
+from tdof20.errors import TdofError
 
 GOLDEN_PATH = Path(__file__).parent / "reproduce_plans.json"
 GOLDEN = json.loads(GOLDEN_PATH.read_text())
@@ -69,10 +70,47 @@ def test_the_example_comparison_is_fair_and_trains_every_row():
     C.check_fair(cfg, str(EXAMPLE))
     assert_fair(cfg, cfg.preset)
     assert set(cfg.methods) == set(C.METHODS) and set(cfg.protocols) == {"simple", "hard"}
-    assert cfg.ablations.segmentation and cfg.ablations.fuse_stages and cfg.ablations.voting_3d
+    assert cfg.ablations.segmentation and cfg.ablations.fuse_stages and cfg.ablations.segmentation_masks == "segnet"
     rows = {r["row"] for r in R.plan(cfg)["runs"]}
-    assert {f"{m}_{p}" for m in ("hff6dof", "hff6dof-3d", "pvnet", "densefusion", "ffb6d")
+    assert {f"{m}_{p}" for m in ("hff6dof", "pvnet", "densefusion", "ffb6d")
             for p in ("simple", "hard")} | {"hff6dof_noseg_hard", "segnet_hard", "hff6dof_fuse1_hard"} <= rows
+    # HFF6DoF's one row is the paper's pose recovery, and says so; no prediction is an oracle
+    labels = {p["label"] for p in R.planned_predictions(cfg) if p["role"] == "main"}
+    assert labels == {"PVNet", "DenseFusion", "FFB6D", "HFF6DoF (3D voting + LSQ)"}
+    assert not any(p["oracle"] for p in R.planned_predictions(cfg))
+
+
+def test_a_row_label_follows_the_options_and_two_equal_rows_are_refused(tmp_path):
+    """HFF6DoF's row is labelled by the pose recovery it predicts with, from the config's method
+    options as from the row's own; asking for its 3D-voting row twice is refused in one line."""
+    cfg = R.make_config("cpu")
+    assert C.row_label(cfg, "hff6dof") == "HFF6DoF (bearing + PnP)"
+    assert C.row_label(cfg, "hff6dof", {"voting": "3d"}) == "HFF6DoF (3D voting + LSQ)"
+    assert C.row_label(cfg, "pvnet") == "PVNet"
+    bad = tmp_path / "twice.toml"
+    bad.write_text('preset = "cpu"\n[method_options.hff6dof]\nvoting = "3d"\n')
+    with pytest.raises(TdofError, match=r"twice.toml.*two compared rows would be the same 'HFF6DoF \(3D voting"):
+        R.make_config(config=str(bad))
+    cfg = R.make_config(config={"preset": "cpu", "ablations": {"voting_3d": False},
+                                "method_options": {"hff6dof": {"voting": "3d"}}})
+    assert C.row_label(cfg, "hff6dof") == "HFF6DoF (3D voting + LSQ)"
+
+
+def test_an_image_size_a_method_cannot_take_is_refused_before_any_job(tmp_path):
+    """FFB6D's stride-8 encoder needs both sides divisible by 8: 60x80 is refused at once, with the
+    file and a size that works, not hours into a run when FFB6D's turn comes."""
+    bad = tmp_path / "size.toml"
+    bad.write_text('preset = "cpu"\n[train]\nimage_size = [60, 80]\n')
+    with pytest.raises(TdofError, match=r"size.toml.*train.image_size 60x80: FFB6D needs both sides divisible by 8 "
+                                        r"\(e.g. 56x80\)"):
+        R.make_config(config=str(bad))
+    out = tmp_path / "out"
+    with pytest.raises(TdofError, match="divisible by 8"):
+        R.reproduce(out, config=str(bad), progress=False)
+    assert not out.exists()
+    assert R.make_config(config={"preset": "cpu", "methods": ["hff6dof", "pvnet"],
+                                 "train": {"image_size": [60, 80]}}).train.image_size == (60, 80)
+    assert C.segnet_available() is True
 
 
 def assert_fair(cfg, preset: str) -> None:
@@ -92,7 +130,7 @@ def assert_fair(cfg, preset: str) -> None:
     # the same number of candidate sets chosen on validation for every compared row (2, or 1 = none)
     mains = [r for r in runs if r["candidates"]]
     assert {r["candidates"] for r in mains} == ({2} if preset in C.CHOOSING_PRESETS else {1})
-    assert len(mains) == len(cfg.train.seeds) * (len(cfg.methods) + 1) * len(cfg.protocols)
+    assert len(mains) == len(cfg.train.seeds) * (len(cfg.methods) + cfg.ablations.voting_3d) * len(cfg.protocols)
     # every row once per seed, >= 2 seeds in cpu, >= 3 in gpu and full
     assert len(cfg.train.seeds) >= MIN_SEEDS[preset]
     per_row = Counter(r["row"] for r in runs)

@@ -53,7 +53,7 @@ def segnet_available() -> bool:
     """Whether this version has the segmentation network the segmentation ablation needs: the
     registered method :data:`SEGNET` and HFF6DoF's prediction option masks = "segnet" with
     seg_run (imports HFF6DoF's module)."""
-    if SEGNET not in method_names():
+    if SEGNET not in method_names(None):
         return False
     return "seg_run" in {f.name for f in dataclasses.fields(get_method("hff6dof").config_class)}
 
@@ -407,8 +407,31 @@ def make_config(preset: str | None = None, config: str | Path | dict | None = No
             raise TdofError(f"method_options.{m}: {e}", src or None) from None
     cfg.method_options = json.loads(json.dumps(options))
     cfg.candidates = check_candidates(candidates, src)
+    check_image_size(cfg, src)
     check_fair(cfg, src)
     return cfg
+
+
+def check_image_size(cfg: ReproduceConfig, src: str = "") -> None:
+    """Refuse, before any job runs, a train.image_size a method cannot take (its record's
+    ``image_multiple``: FFB6D's stride-8 encoder needs both sides divisible by 8)."""
+    h, w = cfg.train.image_size
+    for m in cfg.methods:
+        k = get_method(m).image_multiple
+        if h % k or w % k:
+            raise TdofError(f"train.image_size {h}x{w}: {LABELS[m]} needs both sides divisible by {k} "
+                            f"(e.g. {h // k * k or k}x{w // k * k or k})", src or None)
+
+
+def row_label(cfg: ReproduceConfig, method: str, own: dict | None = None) -> str:
+    """A main row's label: the method's, or its variant's where the row's options (the config's
+    [method_options.<method>] under the row's own) select one (HFF6DoF with voting = "3d" is
+    "HFF6DoF (3D voting + LSQ)", whether as the 3D-voting row or as its only row)."""
+    options = {**cfg.method_options.get(method, {}), **(own or {})}
+    for suffix in get_method(method).reproduce.variant_labels:
+        if suffix in options.values():
+            return LABELS[f"{method}-{suffix}"]
+    return LABELS[method]
 
 
 #: privileged inputs, by option and value: derived from the ground truth, never a submission
@@ -431,8 +454,13 @@ def check_fair(cfg: ReproduceConfig, src: str = "") -> None:
     divides into whole steps of each method's batch.)"""
     where = src or None
     sizes = {}
-    for m, own in main_rows(cfg.methods, cfg.ablations.voting_3d):
-        row = LABELS[m] if not own else LABELS["hff6dof-3d"]
+    labels = [row_label(cfg, m, own) for m, own in main_rows(cfg.methods, cfg.ablations.voting_3d)]
+    twice = sorted({x for x in labels if labels.count(x) > 1})
+    if twice:
+        raise TdofError(f"two compared rows would be the same '{twice[0]}' (ablations.voting_3d adds HFF6DoF's 3D "
+                        "voting row, and method_options.hff6dof.voting = \"3d\" makes its main row that too): set "
+                        "one of them", where)
+    for (m, own), row in zip(main_rows(cfg.methods, cfg.ablations.voting_3d), labels):
         bad = privileged_inputs(cfg.method_options.get(m, {}))
         if bad:
             key = next(k for k, v in cfg.method_options[m].items() if k in PRIVILEGED and v in PRIVILEGED[k])

@@ -20,7 +20,7 @@ import itertools
 from tdof20.dataset.naming import normalize_scene_id, scene_number
 from tdof20.dataset.splits import VAL_PART, part_of
 from tdof20.dataset.validation import part_images
-from tdof20.experiments.reproduce_config import LABELS, SEGNET, ReproduceConfig, candidate_table
+from tdof20.experiments.reproduce_config import LABELS, SEGNET, ReproduceConfig, candidate_table, row_label
 
 #: the row label of the segmentation ablation's row without HFF6DoF's head, per mask source
 NOSEG_LABELS = {"segnet": "HFF6DoF without segmentation head (masks of a separate segmentation network)",
@@ -80,7 +80,7 @@ def planned_predictions(cfg: ReproduceConfig) -> list[dict]:
         base = {"name": r["name"], "run": r["name"], "row": row, "seed": r["seed"], "method": r["method"],
                 "split": split, "oracle": False}
         if row == f"{r['method']}_{split}":
-            out.append({**base, "label": LABELS[r["method"]], "options": {}, "role": "main"})
+            out.append({**base, "label": row_label(cfg, r["method"]), "options": {}, "role": "main"})
         elif row == f"hff6dof-3d_{split}":
             out.append({**base, "label": LABELS["hff6dof-3d"], "options": {"voting": "3d"}, "role": "main"})
         elif "fuse_stages" in r["options"]:

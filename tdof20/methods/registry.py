@@ -75,7 +75,8 @@ class Method(PoseMethod):
     depth, raw or filled; the restored one only with the privileged depth_mode "restored");
     implementation: () -> the method's :class:`~tdof20.methods.contract.PoseMethod` class (imports
     its module); reproduce: what ``tdof20 reproduce`` runs of it;
-    default_image_size: (H, W) the network sees unless a run says otherwise;
+    default_image_size: (H, W) the network sees unless a run says otherwise; image_multiple: both
+    sides of the image size must be a multiple of it (FFB6D's stride-8 encoder: 8);
     paper: the paper's Table 3 figures for it ({"parameters_M", "macs_G", "fps", "gpu"}, those it
     gives); original: the original implementation's published or counted figures
     ({"parameters_M": ..., "source": ...}); notes: what its profile counts, where that differs
@@ -90,6 +91,7 @@ class Method(PoseMethod):
     implementation: Callable[[], type[PoseMethod]]
     reproduce: ReproduceSettings
     default_image_size: tuple[int, int] = (240, 320)
+    image_multiple: int = 1
     paper: Mapping[str, Any] = field(default_factory=dict)
     original: Mapping[str, Any] = field(default_factory=dict)
     notes: str = ""
@@ -351,7 +353,7 @@ register(Method(
     name="ffb6d", implementation=_ffb6d,
     description="FFB6D (He et al. 2021): PSPNet-ResNet34 + RandLA-Net with bidirectional fusion, keypoint "
                 "offsets, MeanShift + least squares",
-    inputs="rgbd", default_image_size=(240, 320),
+    inputs="rgbd", default_image_size=(240, 320), image_multiple=8,
     paper={"macs_G": 215.54},
     original={"parameters_M": 33.8, "source": "published with FFB6D (He et al., CVPR 2021): FFB6D 33.8 M, "
                                              "PVN3D 39.2 M (as issue 14 quotes them)"},
