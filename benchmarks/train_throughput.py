@@ -4,7 +4,7 @@ input pipeline's frames/s with N DataLoader workers, and (``--wait-policy``) why
 training once differed tenfold.
 
     python benchmarks/train_throughput.py [--preset cpu|gpu|full] [--methods all|hff6dof,pvnet]
-        [--batch N] [--steps 3] [--repeats 2] [--workers 0,1,2] [--frames 16] [--wait-policy] [--json OUT]
+        [--batch N] [--steps 3] [--repeats 2] [--workers 0,1,2] [--frames 16] [--concurrent 2] [--wait-policy] [--json OUT]
 
 What is measured, on the CPU (every figure is the best of ``--repeats``: the machine is shared):
 
@@ -27,6 +27,13 @@ What is measured, on the CPU (every figure is the best of ``--repeats``: the mac
 - pipeline frames/s: a DataLoader over a shard of ``--frames`` synthetic frames (written in the
   shard format, :mod:`tdof20.dataset.shards`) through the transform, with each ``--workers``
   count, nothing else running in this process.
+- ``--concurrent N``: N trainings at once, one thread each, in N fresh processes (what ``tdof20
+  reproduce --executor ray`` does with a local instance: one CPU per training job), each running
+  the same timed steps started together at a barrier: their images/s summed, against the same
+  FLOP-bound rate (the GEMM rate with all of torch's threads). On this 2-core machine a small
+  network at a small size uses the two cores far better as two one-thread trainings than as one
+  two-thread training: mkldnn's convolutions on 3x4 to 48x64 feature maps scale poorly across
+  threads, while on one thread they run near the GEMM rate.
 - ``--wait-policy``: a few HFF6DoF steps in two fresh processes, OMP_WAIT_POLICY=ACTIVE (libgomp
   spinning at every barrier: what torch did before train.py / the CLI set PASSIVE) and PASSIVE,
   each with torch's default threads: wall and CPU seconds per step. On a 2-core machine shared with
@@ -229,6 +236,64 @@ print(torch.get_num_threads(), *[f"{a:.3f},{b:.3f}" for a, b in out[1:]])
 """
 
 
+def _concurrent_worker(name: str, pre: dict, batch_size: int, steps: int, repeats: int, barrier, out) -> None:
+    """One of ``--concurrent``'s trainings (a spawned process, one thread): wall seconds per timed run."""
+    torch.set_num_threads(1)
+    m = get_method(name)
+    cfg = make_method_config(m, None, pre["options"].get(name, {}))
+    meta = synthetic_meta(20, pre["image_size"])
+    tf = m.transform(cfg, meta, train=True)
+    torch.manual_seed(0)
+    batch = collate([tf(synthetic_item(meta, pre["capture"], seed=i)) for i in range(batch_size)])
+    net = m.build(cfg, meta).train()
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-4, fused=True)
+
+    def train_steps():
+        for _ in range(steps):
+            loss, _ = m.loss(net, batch, cfg, meta)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+
+    train_steps()  # warm-up
+    walls = []
+    for _ in range(repeats):
+        barrier.wait()
+        t0 = time.perf_counter()
+        train_steps()
+        walls.append(time.perf_counter() - t0)
+    out.put(walls)
+
+
+def concurrent(name: str, pre: dict, batch_size: int, steps: int, repeats: int, n: int, gemm: float,
+               macs: float) -> dict:
+    """``n`` one-thread trainings of ``name`` at once: summed images/s (best of ``repeats``) and its
+    share of the FLOP-bound rate."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    barrier, out = ctx.Barrier(n), ctx.Queue()
+    env_before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"  # the children's OpenMP pools, set before they start
+    try:
+        procs = [ctx.Process(target=_concurrent_worker, args=(name, pre, batch_size, steps, repeats, barrier, out))
+                 for _ in range(n)]
+        for p in procs:
+            p.start()
+        walls = [out.get() for _ in procs]
+        for p in procs:
+            p.join()
+    finally:
+        if env_before is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = env_before
+    best = min(max(w[r] for w in walls) for r in range(repeats))  # the slowest process of the best run
+    ips = n * batch_size * steps / best
+    bound = gemm / (3 * macs)
+    return {"processes": n, "images_per_s": round(ips, 3), "percent_of_bound": round(100 * ips / bound, 1)}
+
+
 def wait_policy(steps: int = 4) -> dict:
     """HFF6DoF steps at the demo's 60x80, batch 4, in a fresh process per OMP_WAIT_POLICY."""
     out = {}
@@ -254,6 +319,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--workers", default="0,1,2", help="DataLoader worker counts for the pipeline's frames/s")
     ap.add_argument("--frames", type=int, default=16, help="frames in the pipeline's shard")
+    ap.add_argument("--concurrent", type=int, default=0,
+                    help="also N trainings at once, one thread each (reproduce --executor ray's way): summed images/s")
     ap.add_argument("--wait-policy", action="store_true", help="also compare OMP_WAIT_POLICY ACTIVE vs PASSIVE")
     ap.add_argument("--input-only", action="store_true",
                     help="the input side only (no training steps): for the gpu/full presets' sizes on a CPU")
@@ -297,6 +364,12 @@ def main() -> None:
         else:
             print(f"{name:<12} {'(input only)':>64} {row['transform_ms']:>7.1f} {'':>7}  {pipe:<28} "
                   f"{before}-{row['load_after']}")
+        if a.concurrent > 0 and "step_s" in row:
+            row["concurrent"] = concurrent(name, pre, bs, a.steps, a.repeats, a.concurrent, gemm,
+                                           row["macs_per_image_G"] * 1e9)
+            c = row["concurrent"]
+            print(f"{'':<12} {c['processes']} trainings at once, one thread each: {c['images_per_s']:.2f} img/s in all "
+                  f"= {c['percent_of_bound']:.1f}% of the bound (load {load()})")
         if "deferred_cpu_ms" in row:
             dpipe = ", ".join(f"{w}: {v}" for w, v in row["pipeline_deferred_frames_per_s"].items())
             print(f"{'':<12} deferred dense part (train.py on a GPU): CPU part {row['deferred_cpu_ms']} ms/frame, "

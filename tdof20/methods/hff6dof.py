@@ -271,7 +271,9 @@ def geometry_map(depth_mm: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
     du, dv = grad(3), grad(2)
     n = torch.cross(du, dv, dim=1)
-    norm = n.norm(dim=1, keepdim=True)
+    # the sum of squares by hand: torch's norm over a 3-long middle dimension is ~30x slower here
+    # (11.7 vs 0.4 ms a 4x3x96x128 batch on one thread)
+    norm = (n * n).sum(dim=1, keepdim=True).sqrt()
     ok = valid[:, None] & (norm > 1e-12)
     n = torch.where(ok, n / norm.clamp_min(1e-12), torch.zeros_like(n))
     flip = (n * xyz).sum(dim=1, keepdim=True) > 0

@@ -137,7 +137,7 @@ class BuildingBlock(nn.Module):
         nb = gather_points(p, neigh_idx)                              # (B,3,N,k)
         tile = p[..., None].expand(-1, -1, -1, k)
         rel = tile - nb
-        dist = rel.norm(dim=1, keepdim=True)
+        dist = (rel * rel).sum(dim=1, keepdim=True).sqrt()  # torch's norm over dim 1: ~10x slower (no grad flows here)
         return torch.cat([dist, rel, tile, nb], dim=1)
 
     def forward(self, xyz: torch.Tensor, feature: torch.Tensor, neigh_idx: torch.Tensor) -> torch.Tensor:
