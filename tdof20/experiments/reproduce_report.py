@@ -22,7 +22,8 @@ from tdof20.scoring.scoring import DatasetView
 def table_entries(out: Path, cfg: ReproduceConfig, state):
     """The tables' inputs from the scores written: (entries, fusion, seg_on, seg_off), one entry
     per row with its seeds' scores combined (:func:`over_seeds`: the mean and the spread). HFF6DoF's
-    main row (bearing + PnP, the method's default) carries extra["primary"]: it stands for HFF6DoF
+    main row (the pose recovery its method options select: bearing + PnP by default, 3D voting with
+    [method_options.hff6dof] voting = "3d") carries extra["primary"]: it stands for HFF6DoF
     in the agreement claims, fixed before any result (no choice between separately trained rows);
     its 3D-voting row is a row of its own. A row marked oracle (ground-truth masks) carries
     oracle_masks and stays outside every claim."""
