@@ -40,7 +40,7 @@ def runs(tmp_path_factory):
     import torch
 
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as in a Ray task of one CPU (OMP_NUM_THREADS=1): the same arithmetic
+    torch.set_num_threads(1)  # as in a Ray task of one CPU (reproduce sets its threads): the same arithmetic
     try:
         local = R.reproduce(base / "local", config=SMALL, progress=False)
         ray_md = R.reproduce(base / "ray", config=SMALL, progress=False, executor="ray", workers=2)
@@ -55,6 +55,8 @@ def test_ray_runs_the_same_jobs_and_makes_the_same_tables(runs):
     a, b = read_json(base / "local" / "reproduce.json"), read_json(base / "ray" / "reproduce.json")
     assert a["digest"] == b["digest"] and set(a["jobs"]) == set(b["jobs"])
     assert {k for k in b["jobs"] if k.startswith("train/")} == {"train/pvnet_simple_s0", "train/pvnet_simple_s1"}
+    # each Ray task of one CPU trained on one thread (two at once on two cores, not four threads)
+    assert {v["threads"] for k, v in b["jobs"].items() if k.startswith("train/")} == {1}
     for k, v in a["jobs"].items():
         w = b["jobs"][k]
         for key in ("kept_epoch", "kept_step", "images_seen", "options", "add_s", "proj2d"):

@@ -581,11 +581,26 @@ def job_resources(cfg: ReproduceConfig, stage: str, gpus_per_job: float) -> dict
 
 def _ray_job(out: Path, root: Path, cfg: ReproduceConfig, spec: dict, jobs: dict, validation: dict) -> dict:
     """One job in a Ray task: (seconds, CPU seconds, info, the validation figures it holds)."""
+    import ray
+    import torch
+
+    # torch's threads = the task's CPUs: a Ray worker's OMP_NUM_THREADS is not set for it, and N
+    # tasks of one CPU on N cores each spinning up N threads oversubscribed the machine N-fold
+    cpus = ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0)
+    torch.set_num_threads(max(1, int(cpus)))
     state = TaskState(out, spec["name"], jobs, validation)
     t0, c0 = time.perf_counter(), _cpu_seconds()
     info = Runner(out, root, cfg, state, False).run(spec)
-    return {"seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - c0, "info": info,
-            "validation": state.data["validation"]}
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - c0,
+            "info": {**info, **_threads(spec)}, "validation": state.data["validation"]}
+
+
+def _threads(spec: dict) -> dict:
+    """{"threads": torch's intra-op threads} for a job that ran torch (training, choice, prediction)."""
+    import sys
+
+    torch = sys.modules.get("torch")
+    return {"threads": torch.get_num_threads()} if torch is not None and spec["stage"] in RAY_STAGES else {}
 
 
 def _finish(state: State, spec: dict, seconds: float, cpu: float, info: dict) -> None:
@@ -603,7 +618,7 @@ def _run_local(runner: Runner, todo: list[dict], state: State, bar, task) -> Non
         bar.update(task, description=f"reproduce: {spec['name']}")
         t0, c0 = time.perf_counter(), _cpu_seconds()
         info = runner.run(spec)
-        _finish(state, spec, time.perf_counter() - t0, _cpu_seconds() - c0, info)
+        _finish(state, spec, time.perf_counter() - t0, _cpu_seconds() - c0, {**info, **_threads(spec)})
         bar.advance(task)
 
 
