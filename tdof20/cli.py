@@ -622,7 +622,11 @@ def train_cmd(method: str = typer.Argument(..., help="the method: " + _method_he
               save_every_s=pick(save_every, opts.save_every_s), cache_dir=cache_dir, part=part)
     except TdofError as e:
         if getattr(e, "same_in_every_process", False) and not is_main_process():
-            sys.exit(2)  # under torchrun: process 0 prints the line
+            # under torchrun: process 0 prints the line. Exiting at once raced it: torchrun stops every
+            # process when one fails, and a busy process 0 was stopped before it printed. So wait for
+            # torchrun to stop this one (process 0's failure), for at most a minute.
+            time.sleep(60)
+            sys.exit(2)
         raise
 
 
