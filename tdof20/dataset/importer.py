@@ -31,7 +31,6 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 from tdof20.dataset.layouts.base import TARGET_MIN_VISIB
 from tdof20.errors import TdofError
@@ -167,6 +166,8 @@ def _split_class(pix: np.ndarray, members: list[int], lab) -> list[np.ndarray]:
             lbl[lab.full[i] & (lbl == 0)] = j + 1
     if not lbl.any():
         return [pix.copy()] + [np.zeros_like(pix) for _ in members[1:]]
+    from scipy.ndimage import distance_transform_edt  # on first use: importing the importer stays light
+
     _, (iy, ix) = distance_transform_edt(lbl == 0, return_indices=True)
     nearest = lbl[iy, ix]
     return [pix & (nearest == j + 1) for j in range(len(members))]

@@ -21,12 +21,9 @@ import json
 import operator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-import trimesh
-from scipy.spatial import ConvexHull
-from scipy.spatial.distance import cdist
 
 from tdof20.errors import TdofError
 from tdof20.formats.bop_models import model_path, write_model_mesh
@@ -97,6 +94,8 @@ class ObjectModel:
 
     def to_trimesh(self) -> trimesh.Trimesh:
         """A fresh, writable trimesh copy of the model."""
+        import trimesh
+
         return trimesh.Trimesh(vertices=self.vertices.copy(), faces=self.faces.copy(), process=False)
 
     def sample_surface(self, n: int, seed: int = 0) -> np.ndarray:
@@ -123,6 +122,8 @@ class ObjectModel:
 
 def max_pairwise_distance(points: np.ndarray, chunk: int = 1024) -> float:
     """Largest distance between two of ``points`` (N,3), by brute force in chunks."""
+    from scipy.spatial.distance import cdist
+
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     best = 0.0
     for i in range(0, len(P), chunk):
@@ -169,6 +170,8 @@ def cavity_volume(vertices: np.ndarray, faces: np.ndarray, step: float = 1.5, se
 
 def mesh_diameter(vertices: np.ndarray) -> float:
     """Exact diameter: the farthest pair of vertices lies on the convex hull."""
+    from scipy.spatial import ConvexHull
+
     V = np.asarray(vertices, dtype=np.float64)
     hull = ConvexHull(V)
     return max_pairwise_distance(V[hull.vertices])
@@ -177,7 +180,10 @@ def mesh_diameter(vertices: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------
 # Builders (z0 = 0 at the bottom; the catalog re-centres the bounding box in z)
 # ------------------------------------------------------------------------------------------
-Mesh = tuple[np.ndarray, np.ndarray] | trimesh.Trimesh
+if TYPE_CHECKING:  # trimesh is imported where a mesh is built (importing the catalog stays light)
+    import trimesh
+
+    Mesh = tuple[np.ndarray, np.ndarray] | trimesh.Trimesh
 
 
 def _tumbler(r_base: float, r_top: float, height: float, wall: float, floor: float, fillet: float = 4.0,
@@ -329,6 +335,8 @@ def _readonly(a: np.ndarray, dtype) -> np.ndarray:
 
 def _build(obj_id: int) -> ObjectModel:
     spec = _TABLE[obj_id]
+    import trimesh
+
     mesh = spec.build()
     if isinstance(mesh, trimesh.Trimesh):
         V, F = np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64)

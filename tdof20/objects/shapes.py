@@ -18,11 +18,12 @@ by the wall thickness along its normals) down to a thicker floor.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
-import trimesh
-from scipy.interpolate import PchipInterpolator
+
+if TYPE_CHECKING:
+    import trimesh
 
 _EPS = 1e-9
 
@@ -75,6 +76,8 @@ def wall_curve(knots: Sequence[Sequence[float]], n: int, bend_weight: float = 3.
     if np.any(np.diff(k[:, 1]) <= 0):
         raise ValueError("wall_curve knots need strictly increasing z")
     z = np.linspace(k[0, 1], k[-1, 1], 800)
+    from scipy.interpolate import PchipInterpolator
+
     s = PchipInterpolator(k[:, 1], k[:, 0])(z)
     return resample(np.stack([s, z], axis=1), n, bend_weight)
 
@@ -371,6 +374,8 @@ def orient_outward(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
 
 
 def to_mesh(vf: tuple[np.ndarray, np.ndarray] | trimesh.Trimesh) -> trimesh.Trimesh:
+    import trimesh  # imported on first use: importing the shapes (as the CLI does) stays light
+
     if isinstance(vf, trimesh.Trimesh):
         return vf
     v, f = vf
@@ -379,6 +384,8 @@ def to_mesh(vf: tuple[np.ndarray, np.ndarray] | trimesh.Trimesh) -> trimesh.Trim
 
 
 def _clean(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    import trimesh
+
     m = trimesh.Trimesh(vertices=np.asarray(mesh.vertices, dtype=np.float64),
                         faces=np.asarray(mesh.faces, dtype=np.int64), process=True)
     m.remove_unreferenced_vertices()
@@ -387,22 +394,30 @@ def _clean(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 def union(*parts) -> trimesh.Trimesh:
     """Boolean union of closed meshes (manifold3d backend); the result is watertight."""
+    import trimesh
+
     return _clean(trimesh.boolean.union([to_mesh(p) for p in parts], engine="manifold"))
 
 
 def difference(a, *b) -> trimesh.Trimesh:
     """``a`` minus every mesh in ``b`` (manifold3d backend)."""
+    import trimesh
+
     return _clean(trimesh.boolean.difference([to_mesh(a)] + [to_mesh(p) for p in b], engine="manifold"))
 
 
 def intersection(*parts) -> trimesh.Trimesh:
     """Boolean intersection of closed meshes (manifold3d backend)."""
+    import trimesh
+
     return _clean(trimesh.boolean.intersection([to_mesh(p) for p in parts], engine="manifold"))
 
 
 def box(lo: Sequence[float], hi: Sequence[float]) -> trimesh.Trimesh:
     """Axis-aligned box between corners ``lo`` and ``hi``."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    import trimesh
+
     b = trimesh.creation.box(extents=hi - lo)
     b.apply_translation((lo + hi) / 2.0)
     return b

@@ -19,10 +19,12 @@ same table angles and the same mount.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # imported where a mesh is built: importing the lab (as the CLI does) stays light
+    import trimesh
 
 from tdof20.formats.session import TURN_DIRECTIONS as DIRECTIONS
 from tdof20.geometry import make_T, rotation_matrix
@@ -253,6 +255,8 @@ def T_base_local(preset: ClutterPreset, layout) -> np.ndarray:
 def clutter_parts(names, layout) -> list[tuple[trimesh.Trimesh, Callable[[np.ndarray], np.ndarray]]]:
     """[(mesh in the base frame, albedo of base-frame points (N,3) -> (N,3) float32)] of the
     named presets, in order."""
+    import trimesh
+
     check_clutter(names)
     out = []
     for name in names:

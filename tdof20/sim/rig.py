@@ -16,8 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from tdof20.geometry import PinholeCamera, compose, invert, look_at, make_T, rotation_about_axis
 
@@ -53,6 +51,9 @@ def ur5_ik(T_target: np.ndarray, q_seed: np.ndarray, tol_mm: float = 1e-3) -> np
     """Numerical inverse kinematics near ``q_seed`` (rad). Raises ValueError if unreachable: at
     once for a flange farther from the shoulder than the arm reaches (:data:`UR5_FLANGE_REACH_MM`),
     where the search (8 starts of up to 2,000 evaluations) could only fail."""
+    from scipy.optimize import least_squares  # imported on first use: importing the rig stays light
+    from scipy.spatial.transform import Rotation
+
     T_target = np.asarray(T_target, dtype=float)
     R_t = T_target[:3, :3]
     dist = float(np.linalg.norm(T_target[:3, 3] - UR5_SHOULDER))

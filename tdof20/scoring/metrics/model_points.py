@@ -9,9 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+if TYPE_CHECKING:  # scipy.spatial is imported on first use: importing the scorer (as the CLI does) stays light
+    from scipy.spatial import cKDTree
 
 from tdof20.scoring.metrics.reference import _pts
 
@@ -214,6 +217,8 @@ class ModelPoints:
     @cached_property
     def hull_idx(self) -> np.ndarray:
         """Indices of the points on the convex hull (all points where the hull is degenerate)."""
+        from scipy.spatial import ConvexHull, QhullError
+
         try:
             return np.sort(ConvexHull(self.pts).vertices)
         except (QhullError, ValueError):
@@ -256,6 +261,8 @@ class ModelPoints:
 
     @cached_property
     def tree(self) -> cKDTree:
+        from scipy.spatial import cKDTree
+
         return cKDTree(self.pts, leafsize=32)
 
     @cached_property

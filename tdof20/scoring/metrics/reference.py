@@ -18,8 +18,12 @@ The input checks (``_poses``, ``_pts``, ``_Ks``) and the chunking of (pose, poin
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:  # scipy.spatial is imported on first use: importing the scorer (as the CLI does) stays light
+    from scipy.spatial import cKDTree
 
 _CHUNK = 1 << 21  # elements (poses x points) per vectorised chunk: ~50 MB of float64 temporaries
 
@@ -82,7 +86,10 @@ def adds_batch(R_est, t_est, R_gt, t_gt, pts, tree: cKDTree | None = None) -> np
     the nearest estimate-posed point (mm), by exact KD-tree queries (``tree`` on ``pts``)."""
     P = _pts(pts)
     A, b = relative_transform(R_est, t_est, R_gt, t_gt)
-    tree = cKDTree(P) if tree is None else tree
+    if tree is None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(P)
     out = np.empty(len(A))
     for s in _chunks(len(A), len(P)):
         Q = np.einsum("nj,bij->bni", P, A[s]) + b[s, None, :]
