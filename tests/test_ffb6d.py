@@ -11,7 +11,7 @@ import torch
 from tdof20.methods import ffb6d, ffb6d_pose
 from tdof20.methods.base import MethodMeta
 from tdof20.methods.data import collate
-from tdof20.methods.randla import knn, knn_numpy, point_pyramid
+from tdof20.methods.randla import knn, point_pyramid
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -69,19 +69,31 @@ def meta():
 # neighbours
 
 
-def test_knn_matches_ckdtree():
+@pytest.mark.parametrize("backend", ["auto", "tree", "block"])
+def test_knn_matches_brute_force(backend):
+    """Against distances computed here in float64 by brute force, not by either backend's own code."""
     g = torch.Generator().manual_seed(0)
     ref = torch.rand(2, 700, 3, generator=g)
     q = torch.rand(2, 300, 3, generator=g)
-    idx = knn(q, ref, 5, block_elements=10_000)                     # many small blocks
+    idx = knn(q, ref, 5, block_elements=10_000, backend=backend)     # many small blocks
     assert idx.shape == (2, 300, 5) and idx.dtype == torch.int64
     for b in range(2):
-        want = knn_numpy(q[b].numpy(), ref[b].numpy(), 5)
-        d_t = (q[b][:, None] - ref[b][idx[b]]).norm(dim=-1)
-        d_s = (q[b][:, None] - ref[b][torch.from_numpy(want)]).norm(dim=-1)
-        assert torch.allclose(d_t, d_s, atol=1e-6)                  # same distances (ties may swap)
-        assert (idx[b] == torch.from_numpy(want)).float().mean() > 0.99
-    assert torch.equal(knn(q[0], ref[0], 1)[:, 0], torch.cdist(q[0], ref[0]).argmin(1))
+        d = ((q[b].double()[:, None] - ref[b].double()[None]) ** 2).sum(-1).numpy()   # (300,700)
+        want = np.argsort(d, axis=1, kind="stable")[:, :5]
+        d_got = np.take_along_axis(d, idx[b].numpy(), axis=1)
+        d_want = np.take_along_axis(d, want, axis=1)
+        assert np.allclose(d_got, d_want, atol=1e-6)                  # the same distances, nearest first
+        assert (idx[b].numpy() == want).mean() > 0.99                 # ties may swap
+    one = knn(q[0], ref[0], 1, backend=backend)[:, 0]
+    assert torch.equal(one, torch.cdist(q[0].double(), ref[0].double()).argmin(1))
+
+
+def test_knn_refuses_unknown_backend_and_bad_k():
+    q, r = torch.zeros(4, 3), torch.zeros(3, 3)
+    with pytest.raises(ValueError, match="backend"):
+        knn(q, r, 1, backend="gpu")
+    with pytest.raises(ValueError, match="1 <= k <= 3"):
+        knn(q, r, 4)
 
 
 def test_point_pyramid_shapes():

@@ -144,7 +144,10 @@ class HFF6DoF(nn.Module):
             x = self.up[str(s)](x, fr[s].shape[2:], fused.get(s))
         x = self.up_full(x, (H, W), None)
         vec = self.vec_head(x)
-        vec = F.normalize(vec.view(B, self.n_keypoints, 3, H, W), dim=2, eps=1e-6).view(B, -1, H, W)
+        # F.normalize's norm over the 3-long middle dimension is ~20x slower on the CPU than the sum of
+        # squares by hand (41 vs ~2 ms at 4x27x96x128 on one thread: 3 % of a training step); same maths
+        v = vec.view(B, self.n_keypoints, 3, H, W)
+        vec = (v / (v * v).sum(dim=2, keepdim=True).sqrt().clamp_min(1e-6)).view(B, -1, H, W)
         seg = self.seg_head(x) if self.seg_head is not None else None
         return {"seg": seg, "vec": vec}
 

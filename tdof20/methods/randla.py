@@ -30,11 +30,17 @@ from torch import nn
 KNN_BLOCK_ELEMENTS = 64 * 1024 * 1024
 
 
-def knn(query: torch.Tensor, ref: torch.Tensor, k: int, block_elements: int = KNN_BLOCK_ELEMENTS
-        ) -> torch.Tensor:
+def knn(query: torch.Tensor, ref: torch.Tensor, k: int, block_elements: int = KNN_BLOCK_ELEMENTS,
+        backend: str = "auto") -> torch.Tensor:
     """Indices (B,M,k) int64 of the k nearest ``ref`` points (B,N,3) of each ``query`` point (B,M,3),
-    nearest first (squared Euclidean distance, torch.cdist + topk, in blocks of queries so that no
-    distance block exceeds ``block_elements``). (M,3)/(N,3) inputs give (M,k)."""
+    nearest first (squared Euclidean distance). (M,3)/(N,3) inputs give (M,k).
+
+    On the CPU: scipy's cKDTree per batch element, in float64 (exact). DenseFusion's ADD-S loss asks
+    for 250,000 queries among 500 points a sample: ~5x faster than a brute-force distance block, which
+    was half of its training step (0.43 vs 2.15 s a batch of 4 on one thread). On other devices: a
+    brute-force block |r|^2 - 2 q.r (the same order as the squared distance) in blocks of queries so
+    that no block exceeds ``block_elements``, then argmin / topk. ``backend`` "tree" / "block" forces
+    one ("tree" moves the points to the CPU and the indices back)."""
     single = query.dim() == 2
     if single:
         query, ref = query[None], ref[None]
@@ -43,13 +49,21 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, block_elements: int = KN
     k = int(k)
     if not 1 <= k <= N:
         raise ValueError(f"knn needs 1 <= k <= {N} reference points, got k={k}")
+    if backend not in ("auto", "tree", "block"):
+        raise ValueError(f"knn backend must be auto, tree or block, got {backend!r}")
+    if M > 0 and (backend == "tree" or (backend == "auto" and query.device.type == "cpu")):
+        q64 = query.detach().to("cpu", torch.float64).numpy()
+        r64 = ref.detach().to("cpu", torch.float64).numpy()
+        idx = torch.from_numpy(np.stack([knn_numpy(q64[b], r64[b], k) for b in range(B)])).to(query.device)
+        return idx[0] if single else idx
     q = query.to(torch.float32)
     r = ref.to(torch.float32)
+    rr, rt = (r * r).sum(-1)[:, None, :], r.transpose(1, 2)
     step = max(1, int(block_elements) // max(1, B * N))
     out = []
     with torch.no_grad():
         for m0 in range(0, M, step):
-            d = torch.cdist(q[:, m0:m0 + step], r)                       # (B,m,N)
+            d = torch.baddbmm(rr, q[:, m0:m0 + step], rt, alpha=-2.0)   # (B,m,N): |q-r|^2 - |q|^2
             out.append(d.topk(k, dim=2, largest=False, sorted=True).indices if k > 1
                        else d.argmin(dim=2, keepdim=True))
     idx = torch.cat(out, dim=1) if out else torch.zeros(B, 0, k, dtype=torch.long, device=query.device)
