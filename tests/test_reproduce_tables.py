@@ -310,6 +310,33 @@ def test_the_primary_row_stands_for_the_method_and_choices_render(tmp_path):
     assert json.loads(paths["tables.json"].read_text())["choices"] == ch
     assert list(csv.reader(io.StringIO(paths["choices.csv"].read_text())))[1][0] == "pvnet_hard"
     assert "Nothing to choose" in T.choices_markdown([])
+    assert "HFF6DoF is the row its method options select, HFF6DoF (3D voting + LSQ), fixed beforehand" in md
+
+
+def test_the_main_hard_run_is_the_fusion_ablations_three_stage_row(tmp_path):
+    """examples/comparison_cpu.toml's fuse_stages = [1, 5] trains no separate 3-stage run: the main
+    hard run (3 fused stages) fills that row, so 'best fused stages' is measured (it read '—' and
+    'not measured' in the first trained comparison)."""
+    from pathlib import Path
+
+    from tdof20.experiments.reproduce_config import make_config
+    from tdof20.experiments.reproduce_plan import planned_predictions
+    from tdof20.experiments.reproduce_report import table_entries
+
+    cfg = make_config(config=Path(__file__).parents[1] / "examples" / "comparison_cpu.toml")
+    assert cfg.ablations.fuse_stages == (1, 5)
+    (tmp_path / "scores").mkdir()
+    values = {"hff6dof_hard": 0.40, "hff6dof_fuse1_hard": 0.10, "hff6dof_fuse5_hard": 0.20}
+    for p in planned_predictions(cfg):
+        v = values.get(p["row"], 0.05)
+        write_json(tmp_path / "scores" / f"{p['name']}.json", synthetic({17: (v + 0.01 * p["seed"], v)}))
+    entries, fusion, seg_on, _ = table_entries(tmp_path, cfg, None)
+    assert sorted(fusion) == [1, 3, 5] and fusion[3] is seg_on
+    assert fusion[3].value("add_s") == pytest.approx(0.405)
+    ft = T.fusion_table(fusion)
+    assert [r["add_s"] is not None for r in ft["rows"]] == [True, False, True, False, True]
+    c = {x["id"]: x for x in T.agreement(entries, [], fusion, seg_on, None)}
+    assert c["best_fuse_stages"]["agrees"] is True
 
 
 def test_one_object_is_counted_in_the_singular(dataset):

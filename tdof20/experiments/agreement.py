@@ -227,7 +227,10 @@ def _yes(v: bool | None) -> str:
     return "not measured" if v is None else ("yes" if v else "no")
 
 
-def agreement_markdown(claims: Sequence[Mapping]) -> str:
+def agreement_markdown(claims: Sequence[Mapping], hff_row: str | None = None) -> str:
+    """The claims as markdown; ``hff_row`` names the row that stands for HFF6DoF in them (the one
+    its method options select, fixed before any result)."""
+    row = f"the row its method options select, {hff_row}" if hff_row else "its default row (bearing + PnP)"
     out = ["**Agreement with the paper's stated figures**", "", "| claim | paper | ours | agrees |",
            "| --- | --- | --- | :---: |"]
     for c in claims:
@@ -236,8 +239,8 @@ def agreement_markdown(claims: Sequence[Mapping]) -> str:
     out += ["", f"{sum(1 for v in n if v is True)} of {sum(1 for v in n if v is not None)} claims measured agree "
                 f"({sum(1 for v in n if v is None)} not measured). Judged from what the data gives; nothing was "
                 "tuned on a test part. A claim about a difference between rows is yes only when the difference "
-                "exceeds the rows' spreads over seeds together (not measured with one seed); HFF6DoF is its "
-                "default row (bearing + PnP), fixed beforehand; rows with oracle masks take part in no claim."]
+                "exceeds the rows' spreads over seeds together (not measured with one seed); HFF6DoF is "
+                f"{row}, fixed beforehand; rows with oracle masks take part in no claim."]
     return "\n".join(out)
 
 

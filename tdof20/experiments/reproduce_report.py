@@ -44,7 +44,7 @@ def table_entries(out: Path, cfg: ReproduceConfig, state):
         if p["role"] == "main":
             entries.append(e)
             if row == "hff6dof_hard":
-                if 3 in cfg.ablations.fuse_stages:
+                if cfg.ablations.fuse_stages:  # the main hard run is the 3-stage row of the fusion ablation
                     fusion[3] = e
                 seg_on = e
         elif p["role"].startswith("fuse"):

@@ -552,7 +552,8 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
         md += ["Segmentation ablation: not run.", ""]
     claims = agreement(entries, profiles, fusion, seg_on, seg_off)
     data["agreement"] = claims
-    md += [agreement_markdown(claims), ""]
+    hff = [e for e in entries if e.method == "hff6dof" and e.extra.get("primary")]
+    md += [agreement_markdown(claims, hff[0].label if hff else None), ""]
     put("agreement.csv", agreement_csv(claims))
     if plots and entries:
         md += ["**Accuracy plots**", ""]
