@@ -122,3 +122,36 @@ def test_workers_resume_and_epochs_give_the_weights_of_one_plain_run(bop, tmp_pa
         for e in epochs:
             assert 0 <= e["data_seconds"] <= e["seconds"] and e["cpu_seconds"] > 0
             assert e["threads"] == torch.get_num_threads() == 1
+
+
+def test_the_gpu_session_script_runs_and_counts_an_epoch(tmp_path):
+    """benchmarks/gpu_session.py (the one prepared run for a lent GPU) runs here with --quick on the
+    CPU, without open3d, trimesh or ray (the GPU machine's image lacks them), and its epoch figure is
+    the gpu preset's steps per epoch (reproduce.plan) times the measured step."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    block = tmp_path / "block"
+    block.mkdir()
+    (block / "sitecustomize.py").write_text(
+        "import sys\nclass _B:\n    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in {'open3d', 'trimesh', 'pymeshlab', 'manifold3d', 'ray', 'depthai'}:\n"
+        "            raise ImportError('blocked: ' + name)\nsys.meta_path.insert(0, _B())\n")
+    env = {**__import__("os").environ, "PYTHONPATH": f"{block}:{repo}", "OMP_NUM_THREADS": "1"}
+    p = subprocess.run([sys.executable, str(repo / "benchmarks" / "gpu_session.py"), "--device", "cpu", "--quick",
+                        "--methods", "pvnet", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                       env=env, cwd=repo, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    res = json.loads((tmp_path / "out" / "gpu_session.json").read_text())
+    r = res["methods"]["pvnet"]
+    assert r["profile"]["end_to_end_fps"] > 0 and r["train"]["images_per_s"] > 0
+    assert r["pipeline"]["frames_per_s"]["0"] > 0
+    sys.path.insert(0, str(repo / "benchmarks"))
+    from gpu_session import steps_per_epoch
+
+    steps = steps_per_epoch("gpu")["pvnet"]
+    assert steps["simple"] > steps["hard"] / 3 > 0                       # hard has ~2x simple's train-val images
+    assert r["epoch_s"]["simple"] == pytest.approx(steps["simple"] * r["train"]["step_ms"] / 1000, rel=1e-3, abs=0.1)
+    assert "pvnet" in p.stdout.splitlines()[-2]
