@@ -771,13 +771,17 @@ def reproduce_cmd(out: Path = typer.Option(..., "--out", help="folder for everyt
                   ray_address: Optional[str] = typer.Option(None, "--ray-address", help="HOST:PORT of a Ray "
                                                             "cluster \\[a new local instance]"),
                   gpus_per_job: Optional[float] = typer.Option(None, "--gpus-per-job", help="GPUs per Ray task "
-                                                               "\\[1 where the cluster has GPUs]")) -> None:
+                                                               "\\[1 where the cluster has GPUs]"),
+                  validation_only: bool = typer.Option(False, "--validation-only", help="the dataset, trainings and "
+                                                       "choices only: the tables give validation figures and no test "
+                                                       "part is predicted (a scale or budget study); the same line "
+                                                       "without it goes on to the test part")) -> None:
     """The paper's Tables 1-3 and both ablations with one command: dataset, train every method on
     both protocols with the same budget (images seen) and seeds, choose epochs and options on
     validation, predict and score the test part, profile, OUT/tables/tables.md (+ CSV, JSON,
     plots); resumable, locally or on a Ray cluster. See docs/reproduce.md."""
     reproduce(out, preset=preset, config=config, dataset=dataset, executor=executor, ray_address=ray_address,
-              gpus_per_job=gpus_per_job)
+              gpus_per_job=gpus_per_job, validation_only=validation_only)
 
 
 #: a line break inside a paragraph (not a blank line), with the next line's indentation

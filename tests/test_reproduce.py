@@ -57,7 +57,7 @@ VAL_EPOCH = {(f"{r}_s0", k): v for (r, k), v in VAL_EPOCH.items()}
 VAL_OPTION = {(f"{r}_s0", k): v for (r, k), v in VAL_OPTION.items()}
 
 
-def _run(out, config, kill_at=None):
+def _run(out, config, kill_at=None, **kw):
     """A reproduce of ``config`` into ``out``, killed in its ``kill_at``-th training call (then
     resumed to the end); every training, prediction and scoring call logged with its part, and the
     jobs' ends in the same log."""
@@ -104,7 +104,7 @@ def _run(out, config, kill_at=None):
             state = read_json(out / "reproduce.json")
             first = dict(state["jobs"])
             first_val = json.loads(json.dumps(state.get("validation", {})))
-        md = reproduce(out, config=config, progress=False)
+        md = reproduce(out, config=config, progress=False, **kw)
     finally:
         mp.undo()
     return {"out": out, "md": md, "calls": calls, "first": first, "first_val": first_val, "log": log}
@@ -253,6 +253,33 @@ def test_choices_are_the_validation_best_and_the_test_part_plays_no_part(done, k
             else:
                 assert e[1] == "val" and job.startswith(("train/", "choose/"))
     assert any(e[:2] == ("score", "val") for e in log) and any(e[:2] == ("score", "test") for e in log)
+
+
+def test_validation_only_never_touches_test_and_the_same_line_goes_on(tmp_path):
+    """--validation-only: the trainings and choices, no test prediction nor score; its tables give each
+    result's validation figure with the options its test prediction will use (the chosen inlier_cos,
+    not the first candidate the epochs were validated with); the same call without it then predicts
+    the test part and trains nothing again."""
+    out = tmp_path / "out"
+    v = _run(out, PVNET, validation_only=True)
+    assert v["log"] and not [e for e in v["log"] if e[0] in ("predict", "score") and e[1] != "val"]
+    assert not (out / "results").exists() and not (out / "scores").exists()
+    jobs = read_json(out / "reproduce.json")["jobs"]
+    assert {k.split("/")[0] for k in jobs} == {"dataset", "train", "choose"}
+    md = v["md"].read_text()
+    assert "**On validation**" in md and "Validation only (--validation-only)" in md
+    rows = list(csv.DictReader(io.StringIO((out / "tables" / "validation.csv").read_text())))
+    assert sorted((r["result"], r["protocol"], float(r["add_s"])) for r in rows) == [("PVNet", "hard", 1.25),
+                                                                                 ("PVNet", "simple", 1.25)]
+    val = json.loads((out / "tables" / "tables.json").read_text())["validation"]
+    by = {r["split"]: r for r in val}
+    # simple: epoch 2 (0.5) + inlier_cos 0.9 (0.75), chosen over 0.99's 0.5; hard: epoch 1 (0.5) + 0.99 (0.75)
+    assert by["simple"]["add_s"] == pytest.approx(1.25) and by["hard"]["add_s"] == pytest.approx(1.25)
+    assert all(r["same_options"] and r["seeds"] == [0] for r in val)
+    g = _run(out, PVNET)
+    assert not [e for e in g["log"] if e[0] == "train"]
+    assert {e[2] for e in g["log"] if e[:2] == ("predict", "test")} == {"pvnet_simple_s0", "pvnet_hard_s0"}
+    assert "Validation only" not in g["md"].read_text() and (out / "tables" / "table1_add_s.csv").exists()
 
 
 def test_changed_config_is_refused(killed):

@@ -72,7 +72,7 @@ class Entry:
         return f"{self.label} · {self.split}" + (f" ({ORACLE})" if self.oracle_masks else "")
 
 
-def _mean_spread(dicts: Sequence[Mapping]) -> tuple[dict, dict]:
+def mean_spread(dicts: Sequence[Mapping]) -> tuple[dict, dict]:
     """Per numeric key of score dicts (one per seed): the mean over the dicts holding a value, and
     the half-range; "n" (targets) the largest."""
     mean, spread = {}, {}
@@ -99,11 +99,11 @@ def over_seeds(scores: Sequence[Mapping], seeds: Sequence[Any] | None = None) ->
     if not scores:
         raise TdofError("no score to combine over seeds")
     seeds = list(seeds) if seeds is not None else [s.get("seed", i) for i, s in enumerate(scores)]
-    mean, spread = _mean_spread([s["mean"] for s in scores])
+    mean, spread = mean_spread([s["mean"] for s in scores])
     objs, obj_spread = {}, {}
     for o in dict.fromkeys(k for s in scores for k in s["objects"]):
         present = [s["objects"][o] for s in scores if o in s["objects"]]
-        objs[o], obj_spread[o] = _mean_spread(present)
+        objs[o], obj_spread[o] = mean_spread(present)
     out: dict = {"mean": mean, "objects": objs, "spread": {"mean": spread, "objects": obj_spread},
                  "seeds": seeds, "per_seed": {str(k): {"add_s": s["mean"].get("add_s"),
                                                        "proj2d": s["mean"].get("proj2d")}

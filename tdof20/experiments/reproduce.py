@@ -109,7 +109,8 @@ from tdof20.experiments.reproduce_config import (CANDIDATES, CHOICE_OPTIONS, LAB
 from tdof20.experiments.reproduce_plan import (budgets, candidate_grid, choice_source, estimate,  # noqa: F401
                                                job_plan, plan, planned_predictions, planned_runs, run_schedule,
                                                validated_epochs)
-from tdof20.experiments.reproduce_report import choices, dataset_objects, table_entries, tables_header
+from tdof20.experiments.reproduce_report import (absolute_options, choices, dataset_objects, table_entries,
+                                                  tables_header, test_options, validation_rows, validation_summary)
 from tdof20.experiments.tables import curves_from_evaluation, write_tables
 from tdof20.formats.io import read_json, write_json
 from tdof20.progress import console, progress as progress_bar
@@ -472,20 +473,14 @@ class Runner:
         return {**run_schedule(r["images"], r["batch"], n), "seed": r["seed"]}
 
     def absolute(self, options: dict) -> dict:
-        """Options with the segmentation network's run folder (relative to DIR in the plan) made absolute."""
-        if "seg_run" in options and not Path(options["seg_run"]).is_absolute():
-            return {**options, "seg_run": str(self.out / options["seg_run"])}
-        return options
+        return absolute_options(self.out, options)
 
     def kept(self, p: dict) -> dict:
         return self.state.get(f"train/{p['run']}")
 
     def options_of(self, p: dict) -> dict:
         """The options the test prediction of ``p`` uses: the row's own, and those chosen on validation."""
-        src = choice_source(self.cfg, p)
-        c = f"choose/{src['name']}"
-        chosen = self.state.get(c)["options"] if self.state.done(c) else candidate_grid(self.cfg, src)[0]
-        return {**{k: v for k, v in chosen.items() if k not in p["options"]}, **p["options"]}
+        return test_options(self.cfg, self.state, p)
 
     def run(self, spec: dict) -> dict:
         return getattr(self, f"{spec['stage']}_job")(spec)
@@ -567,6 +562,9 @@ class Runner:
         write_json(self.out / "profile.json", recs)
         return {"profile": str(self.out / "profile.json")}
 
+
+#: the stages ``validation_only`` runs: nothing that predicts a test part (nor Table 3's profile)
+VALIDATION_STAGES = ("dataset", "train", "choose")
 
 #: the stages a Ray executor runs as tasks (the others, cheap, run in the driver)
 RAY_STAGES = ("train", "choose", "predict", "profile")
@@ -698,9 +696,12 @@ EXECUTORS = ("local", "ray")
 def reproduce(out: str | Path, preset: str | None = None, config: str | Path | dict | None = None,
               dataset: str | Path | None = None, progress: bool = True, executor: str = "local",
               ray_address: str | None = None, gpus_per_job: float | None = None,
-              workers: int | None = None) -> Path:
+              workers: int | None = None, validation_only: bool = False) -> Path:
     """Run (or resume) the reproduction into ``out``; returns DIR/tables/tables.md. See the module
-    docstring for the stages, presets and resume rules. ``executor``: "local" (the jobs one after
+    docstring for the stages, presets and resume rules. ``validation_only``: the dataset, the
+    trainings and the choices only (:data:`VALIDATION_STAGES`), nothing predicted on a test part
+    nor profiled: the tables give the validation figures (a scale or budget study that never looks
+    at test); the same call without it goes on from there to the test part. ``executor``: "local" (the jobs one after
     the other in this process) or "ray" (the independent jobs side by side as Ray tasks on the
     cluster at ``ray_address``, None = a local instance of ``workers`` CPUs; ``gpus_per_job``: GPUs
     per task, None = 1 where the cluster has GPUs and the device is not the CPU). Both make the
@@ -735,10 +736,13 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     root = Path(cfg.dataset) if cfg.dataset else out / "dataset"
     runner = Runner(out, root, cfg, state, progress and executor == "local")
     specs = job_plan(cfg)  # the plan tested against every preset's (tests/reproduce_plans.json)
+    if validation_only:
+        specs = [s for s in specs if s["stage"] in VALIDATION_STAGES]
     todo = [s for s in specs if not state.done(s["name"])]
     if progress:
-        console.print(f"reproduce ({cfg.preset}, {executor}) -> {out}: {len(specs)} jobs, "
-                      f"{len(specs) - len(todo)} done already", highlight=False, markup=False)
+        console.print(f"reproduce ({cfg.preset}, {executor}{', validation only' if validation_only else ''}) -> "
+                      f"{out}: {len(specs)} jobs, {len(specs) - len(todo)} done already",
+                      highlight=False, markup=False)
     with progress_bar(progress, unit="job") as bar:
         task = bar.add_task("reproduce", total=len(specs), completed=len(specs) - len(todo))
         if executor == "ray":
@@ -749,8 +753,13 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
     # tables (always rebuilt from what is on disk: cheap)
     entries, fusion, seg_on, seg_off = table_entries(out, cfg, state)
     profiles = read_json(out / "profile.json") if (out / "profile.json").exists() else []
+    header = tables_header(cfg, root, state)
+    if validation_only and not entries:
+        header.append("Validation only (--validation-only): nothing was predicted on a test part; the same command "
+                      "without the flag goes on to it.")
     paths = write_tables(out / "tables", entries, profiles, fusion or None, seg_on, seg_off, dataset_objects(root),
-                         header=tables_header(cfg, root, state), choices=choices(cfg, state))
+                         header=header, choices=choices(cfg, state),
+                         validation=validation_summary(validation_rows(cfg, state, out)))
     if progress:
         console.print(f"tables: {paths['tables.md']}", markup=False)
     return paths["tables.md"]
@@ -758,6 +767,6 @@ def reproduce(out: str | Path, preset: str | None = None, config: str | Path | d
 
 __all__ = ["AblationConfig", "BatchConfig", "CANDIDATES", "CHOICE_OPTIONS", "DataConfig", "EXECUTORS", "LABELS",
            "METHODS", "PRESETS", "ProfileConfig", "ReproduceConfig", "Runner", "SelectConfig", "State", "TaskState",
-           "Validation", "changed_keys", "check_candidates", "choices", "config_data", "config_digest", "estimate",
+           "VALIDATION_STAGES", "Validation", "changed_keys", "check_candidates", "choices", "config_data", "config_digest", "estimate",
            "job_plan", "job_resources", "make_config", "plan", "predict_run", "profile_methods", "reproduce",
            "score_run", "train_run", "validation_images"]

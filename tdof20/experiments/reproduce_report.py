@@ -3,6 +3,7 @@ written, what was chosen on validation (and on which figures), and the header of
 
     entries, fusion, seg_on, seg_off = table_entries(out, cfg, state)
     rows = choices(cfg, state)          # [{"result", "choice", "chosen", "validation"}]
+    val = validation_rows(cfg, state, out)   # each result's validation figure, seed by seed
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import json
 from pathlib import Path
 
 from tdof20.errors import TdofError
-from tdof20.experiments.entries import Entry, over_seeds
+from tdof20.experiments.entries import Entry, mean_spread, over_seeds
 from tdof20.experiments.reproduce_config import ReproduceConfig
 from tdof20.experiments.reproduce_plan import candidate_grid, choice_source, plan, planned_predictions
 from tdof20.experiments.tables import models_info_objects
@@ -67,6 +68,73 @@ def _pcts(f: dict) -> str:
 
 def _opts_text(options: dict) -> str:
     return ", ".join(f"{k} {v}" for k, v in options.items()) or "defaults"
+
+
+def absolute_options(out: Path, options: dict) -> dict:
+    """Options with the segmentation network's run folder (relative to DIR in the plan) made absolute."""
+    if "seg_run" in options and not Path(options["seg_run"]).is_absolute():
+        return {**options, "seg_run": str(Path(out) / options["seg_run"])}
+    return options
+
+
+def test_options(cfg: ReproduceConfig, state, p: dict) -> dict:
+    """The options the test prediction of ``p`` uses: the row's own, and those chosen on validation
+    (the first candidate set while its choice is not done)."""
+    src = choice_source(cfg, p)
+    c = f"choose/{src['name']}"
+    chosen = state.get(c)["options"] if state.done(c) else candidate_grid(cfg, src)[0]
+    return {**{k: v for k, v in chosen.items() if k not in p["options"]}, **p["options"]}
+
+
+def _same_options(a: dict, b: dict) -> bool:
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def validation_rows(cfg: ReproduceConfig, state, out: Path) -> list[dict]:
+    """Each result's figure on the validation part, seed by seed, from the figures the choices were
+    made on (reproduce.json's "validation"): its kept checkpoint predicted with the options its test
+    prediction uses; where those were never validated (an ablation's run takes the options chosen
+    for HFF6DoF's main hard run, validated with the first candidate set), the kept checkpoint's
+    figure with the options it was validated with. [{"row", "label", "split", "role", "seed",
+    "epoch", "options", "same_options", "add_s", "proj2d", "targets"}], the results whose training
+    is done; add_s None where nothing was validated (select.epochs = "last" and no candidates)."""
+    rows = []
+    cache = state.data.get("validation", {})
+    for p in planned_predictions(cfg):
+        t = f"train/{p['run']}"
+        if not state.done(t):
+            continue
+        k = state.get(t)
+        want = absolute_options(out, test_options(cfg, state, p))
+        figs = [f for f in cache.get(p["run"], []) if f["step"] == k["kept_step"]]
+        f = next((f for f in figs if _same_options(f["options"], want)), None)
+        same = f is not None
+        f = f or (figs[0] if figs else {})
+        rows.append({"row": p["row"], "label": p["label"], "split": p["split"], "role": p["role"],
+                     "seed": p["seed"], "epoch": k["kept_epoch"],
+                     "options": {key: v for key, v in f.get("options", want).items() if key != "seg_run"},
+                     "same_options": same, "add_s": f.get("add_s"), "proj2d": f.get("proj2d"),
+                     "targets": f.get("targets")})
+    return rows
+
+
+def validation_summary(rows: list[dict]) -> list[dict]:
+    """:func:`validation_rows` row by row over the seeds: [{"label", "split", "role", "seeds",
+    "add_s", "add_s_spread", "proj2d", "proj2d_spread", "per_seed", "same_options"}] (the mean over
+    the seeds and half their range, as the test tables give them)."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r["row"], []).append(r)
+    out = []
+    for g in groups.values():
+        mean, spread = mean_spread([{k: r[k] for k in ("add_s", "proj2d")} for r in g])
+        out.append({"label": g[0]["label"], "split": g[0]["split"], "role": g[0]["role"],
+                    "seeds": [r["seed"] for r in g], "add_s": mean.get("add_s"),
+                    "add_s_spread": spread.get("add_s") if len(g) > 1 else None, "proj2d": mean.get("proj2d"),
+                    "proj2d_spread": spread.get("proj2d") if len(g) > 1 else None,
+                    "per_seed": {str(r["seed"]): r["add_s"] for r in g},
+                    "same_options": all(r["same_options"] for r in g)})
+    return out
 
 
 def choices(cfg: ReproduceConfig, state) -> list[dict]:

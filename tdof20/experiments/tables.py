@@ -39,7 +39,7 @@ import numpy as np
 from tdof20.errors import TdofError
 from tdof20.experiments.agreement import (CLAIMS, PAPER, TOLERANCE, agreement, agreement_csv,  # noqa: F401
                                           agreement_markdown)
-from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, over_seeds, pct, signed  # noqa: F401
+from tdof20.experiments.entries import MISSING, ORACLE, SPLITS, Entry, csv_text, over_seeds, pct, pm, signed  # noqa: F401
 from tdof20.formats.io import atomic_write_bytes, write_json
 from tdof20.objects import get_object
 from tdof20.scoring.report import accuracy_curve, counted
@@ -286,10 +286,10 @@ def efficiency_markdown(table: Mapping) -> str:
             out.append(f"| {r['method']} | error: {r['error']} |" + " |" * 6)
             continue
         pp = f" ({_f(r['paper_parameters_M'])})" if r["paper_parameters_M"] is not None else ""
-        pm = f" ({_f(r['paper_macs_G'])})" if r["paper_macs_G"] is not None else ""
+        pmac = f" ({_f(r['paper_macs_G'])})" if r["paper_macs_G"] is not None else ""
         pf = f" ({_f(r['paper_fps'])})" if r["paper_fps"] is not None else ""
         inp = "×".join(str(v) for v in r["input"]) if r.get("input") else MISSING
-        out.append(f"| {r['method']} | {_f(r['parameters_M'])}{pp} | {_f(r['macs_G'])}{pm} | "
+        out.append(f"| {r['method']} | {_f(r['parameters_M'])}{pp} | {_f(r['macs_G'])}{pmac} | "
                    f"{_f(r['network_ms'], '.1f')} | {_f(r['network_fps'])} | {_f(r['pose_ms'], '.1f')} | "
                    f"{_f(r['end_to_end_fps'])}{pf} | {inp} |")
     return "\n".join(out + [""] + table["notes"])
@@ -495,16 +495,51 @@ def choices_csv(rows: Sequence[Mapping]) -> str:
                  + [[r["result"], r["choice"], r["chosen"], r["validation"]] for r in rows])
 
 
+VALIDATION_COLUMNS = ["result", "protocol", "seeds", "add_s", "add_s_spread", "proj2d", "proj2d_spread",
+                      "per_seed_add_s", "options_as_tested"]
+
+
+def validation_markdown(rows: Sequence[Mapping]) -> str:
+    """The validation figures of each result (:func:`~tdof20.experiments.reproduce_report.validation_summary`'s
+    rows) as a Markdown section: what every choice was made on, beside the test tables."""
+    out = ["**On validation** (each result's kept checkpoint with the options its test prediction uses, on "
+           "the validation part; mean ADD(S) and 2D projection accuracy over objects, mean over the seeds "
+           "± half their range)", ""]
+    if not rows:
+        return "\n".join(out + ["No training done yet."])
+    out += ["| result | protocol | ADD(S) % | 2D projection % | ADD(S) per seed % |", "| --- | --- | ---: | ---: | --- |"]
+    for r in rows:
+        mark = "" if r["same_options"] else " †"
+        seeds = ", ".join(f"s{k} {pct(v, 1)}" for k, v in r["per_seed"].items())
+        out.append(f"| {r['label']}{mark} | {r['split']} | {pm(r['add_s'], r['add_s_spread'])} | "
+                   f"{pm(r['proj2d'], r['proj2d_spread'])} | {seeds} |")
+    if any(not r["same_options"] for r in rows):
+        out += ["", "† validated with the first candidate set; its test prediction takes the options chosen for "
+                "HFF6DoF's main hard run."]
+    if all(r["add_s"] is None for r in rows):
+        out += ["", "Nothing was validated (select.epochs = \"last\" and no candidate options)."]
+    return "\n".join(out)
+
+
+def validation_csv(rows: Sequence[Mapping]) -> str:
+    return csv_text([VALIDATION_COLUMNS] + [
+        [r["label"], r["split"], " ".join(map(str, r["seeds"])), r["add_s"], r["add_s_spread"], r["proj2d"],
+         r["proj2d_spread"], " ".join(f"{k}:{v}" for k, v in r["per_seed"].items()), r["same_options"]]
+        for r in rows])
+
+
 def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequence[Mapping] = (),
                  fusion: Mapping[int, Entry] | None = None, seg_on: Entry | None = None,
                  seg_off: Entry | None = None, objects: Mapping[int, tuple[str, bool]] | None = None,
                  header: Sequence[str] = (), plots: bool = True,
-                 choices: Sequence[Mapping] | None = None) -> dict[str, Path]:
+                 choices: Sequence[Mapping] | None = None,
+                 validation: Sequence[Mapping] | None = None) -> dict[str, Path]:
     """Render every table into ``out_dir``: tables.md, tables.json, table1_add_s.csv,
     table2_proj2d.csv, table3_efficiency.csv, ablation_fusion.csv, ablation_segmentation.csv,
     agreement.csv, choices.csv (with ``choices``: what was chosen on validation, rendered after
-    the header) and plots/accuracy_<label>.png per method (atomic writes). Tables without any
-    input are left out (a note says so). Returns {name: path}."""
+    the header), validation.csv (with ``validation``: each result's validation figures) and
+    plots/accuracy_<label>.png per method (atomic writes). Tables without any input are left out
+    (a note says so). Returns {name: path}."""
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -520,6 +555,10 @@ def write_tables(out_dir: str | Path, entries: Sequence[Entry], profiles: Sequen
         data["choices"] = [dict(r) for r in choices]
         md += [choices_markdown(choices), ""]
         put("choices.csv", choices_csv(choices))
+    if validation is not None:
+        data["validation"] = [dict(r) for r in validation]
+        md += [validation_markdown(validation), ""]
+        put("validation.csv", validation_csv(validation))
 
     if entries:
         for key, name in (("add_s", "table1_add_s.csv"), ("proj2d", "table2_proj2d.csv")):
@@ -574,4 +613,4 @@ __all__ = ["CLAIMS", "Entry", "over_seeds", "proj_px_of", "MISSING", "ORACLE", "
            "columns", "curves_from_evaluation",
            "efficiency_csv", "efficiency_markdown", "efficiency_table", "fusion_table", "models_info_objects",
            "plot_accuracy", "protocol_csv", "protocol_markdown", "protocol_table", "segmentation_table",
-           "write_tables"]
+           "validation_csv", "validation_markdown", "write_tables"]
