@@ -230,7 +230,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     def took(stage: str, t0: float, worked: bool, say: bool = True) -> None:
         """Record ``stage``'s seconds: this run's, or for a reused stage those of the run that made
         it (``say``: print that it was reused; else the stage's own line tells, with :func:`spent`)."""
-        timings[stage] = time.perf_counter() - t0 if worked or stage not in prev else prev[stage]
+        # rounded once, here: the lines printed and timings.json give the same seconds (no double rounding)
+        timings[stage] = round(time.perf_counter() - t0, 2) if worked or stage not in prev else prev[stage]
         if not worked:
             reused.append(stage)
             if say:
@@ -316,8 +317,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
               f"Dataset: {st['images']} images; TDoF20-simple {sp['simple_train']} train / {sp['simple_test']} test, "
               f"TDoF20-hard {sp['hard_train']} train / {sp['hard_test']} test.", ""]
     if not train:
-        timings["total"] = time.perf_counter() - run_t0
-        write_json(out / "timings.json", {k: round(v, 2) for k, v in timings.items()})
+        timings["total"] = round(time.perf_counter() - run_t0, 2)
+        write_json(out / "timings.json", timings)
         md = header + [_times_line(timings, reused), "",
                        "![contact sheet](contact_sheet.png)", ""]
         atomic_write_bytes(report, "\n".join(md).encode())
@@ -374,8 +375,8 @@ def run_demo(out: str | Path, scenes: tuple[str, ...] = DEFAULT_SCENES, steps: i
     took("score", t0, True)
     got = read_json(scores_json)  # one results file: its summary; several: {csv stem: summary}
     scores = {m: got[results[m].stem] if len(methods) > 1 else got for m in methods}
-    timings["total"] = time.perf_counter() - run_t0  # this run's wall time, not the reused stages' sum
-    write_json(out / "timings.json", {k: round(v, 2) for k, v in timings.items()})
+    timings["total"] = round(time.perf_counter() - run_t0, 2)  # this run's wall time, not the reused stages' sum
+    write_json(out / "timings.json", timings)
     n_test = sp["simple_test"] // max(1, n_arms * sum(sp_.kind == "single" for sp_ in specs))
 
     def row(what: str, fn) -> str:
