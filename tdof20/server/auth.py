@@ -11,7 +11,7 @@ import time
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
-from sqlalchemy import Engine, delete, insert, select, update
+from sqlalchemy import Engine, delete, func, insert, select, update
 
 from tdof20.errors import TdofError
 from tdof20.server.db import sessions, users
@@ -22,6 +22,9 @@ SESSION_S = 12 * 3600
 _hasher = PasswordHasher()
 VERIFIED_MAX = 4096  # (stored hash, sha256 of a secret) pairs argon2 has accepted, kept in memory
 _verified: dict[tuple[str, str], bool] = {}
+# A hash no secret matches, verified against when a token's id is unknown or revoked, so that every
+# refusal costs argon2's time: an attacker cannot tell a real token id from a made-up one by timing.
+_DUMMY_HASH = _hasher.hash(secrets.token_urlsafe(32))
 
 
 def _verify(token_hash: str, secret: str) -> bool:
@@ -55,8 +58,10 @@ def add_user(engine: Engine, name: str) -> str:
         raise TdofError(f"user name {name[:70]!r}: use 1-64 letters, digits, '_', '.', '-' (a letter or digit first)")
     tid, secret, token = _new_token()
     with engine.begin() as c:
-        if c.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
-            raise TdofError(f"user {name!r} exists (serve user token {name} gives it a new token)")
+        same = c.execute(select(users.c.name).where(func.lower(users.c.name) == name.lower())).first()
+        if same is not None:  # 'alice' and 'Alice' are one person to a reader of the leaderboard
+            hint = "" if same.name == name else f" as {same.name!r} (names are compared ignoring case)"
+            raise TdofError(f"user {name!r} exists{hint} (serve user token {same.name} gives it a new token)")
         c.execute(insert(users).values(name=name, token_id=tid, token_hash=_hasher.hash(secret), revoked=False,
                                        created=time.time()))
     return token
@@ -98,10 +103,44 @@ def authenticate(engine: Engine, token: str | None) -> dict | None:
         row = c.execute(select(users.c.id, users.c.name, users.c.token_hash, users.c.revoked)
                         .where(users.c.token_id == m.group(1))).first()
     if row is None or row.revoked:
+        _verify(_DUMMY_HASH, m.group(2))  # the same time as a wrong secret for a real id
         return None
     if not _verify(row.token_hash, m.group(2)):
         return None
     return {"id": row.id, "name": row.name}
+
+
+class FailureLimit:
+    """Failed sign-ins per client (its address): after ``max_failures`` within ``window_s`` the
+    client is refused until the oldest of them is ``window_s`` old, before any token is checked.
+    Kept in this server process's memory (each process of a multi-process deployment counts its
+    own); a success does not erase failures, so guessing cannot be interleaved with a valid token."""
+
+    def __init__(self, max_failures: int = 10, window_s: float = 900.0, clock=time.monotonic):
+        self.max_failures, self.window_s, self.clock = max_failures, window_s, clock
+        self._failures: dict[str, list[float]] = {}
+
+    def _recent(self, client: str) -> list[float]:
+        now = self.clock()
+        kept = [t for t in self._failures.get(client, []) if now - t < self.window_s]
+        if kept:
+            self._failures[client] = kept
+        else:
+            self._failures.pop(client, None)
+        return kept
+
+    def retry_after(self, client: str) -> float:
+        """Seconds until ``client`` may try again (0: it may now)."""
+        recent = self._recent(client)
+        if len(recent) < self.max_failures:
+            return 0.0
+        return max(0.0, recent[-self.max_failures] + self.window_s - self.clock())
+
+    def failed(self, client: str) -> None:
+        if len(self._failures) > 100_000:  # a flood of addresses: forget the quiet ones first
+            for k in [k for k in list(self._failures) if not self._recent(k)]:
+                self._failures.pop(k, None)
+        self._failures.setdefault(client, []).append(self.clock())
 
 
 def _sid(cookie: str) -> str:
@@ -142,5 +181,5 @@ def same_token(a: str | None, b: str | None) -> bool:
     return bool(a) and bool(b) and secrets.compare_digest(str(a), str(b))
 
 
-__all__ = ["add_user", "authenticate", "create_session", "end_session", "list_users", "new_token", "revoke_user",
+__all__ = ["FailureLimit", "add_user", "authenticate", "create_session", "end_session", "list_users", "new_token", "revoke_user",
            "same_token", "session_user"]
