@@ -242,7 +242,7 @@ def test_50_concurrent_submissions_are_all_acknowledged_and_scored(dataset, tmp_
     data = tmp_path / "data"
     csv = tmp_path / "r.csv"
     csv.write_bytes(results_csv(gt, "simple"))  # the smallest protocol (2 images): the workers' time is scoring
-    with LiveServer(root, data, "--daily-limit", "100") as live:
+    with LiveServer(root, data, "--daily-limit", "100", "--max-uploads", "50") as live:
         with ThreadPoolExecutor(max_workers=50) as pool:  # bounded: 50 submissions, 50 threads
             acks = list(pool.map(lambda i: submit(csv, live.url, live.tokens[("alice", "bob")[i % 2]], f"m{i}",
                                                   "simple"), range(50)))

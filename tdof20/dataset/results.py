@@ -145,37 +145,101 @@ def _is_float(s: str) -> bool:
 
 
 def read_results(path: str | Path) -> Results:
-    """Read and check a BOP results CSV; any problem is a TdofError naming the file and line."""
+    """Read and check a BOP results CSV; any problem is a TdofError naming the file and line.
+    The file is parsed in parts (:func:`iter_rows`): memory beyond the rows' arrays (136 bytes a
+    row) is bounded, not the text's size."""
     path = Path(path)
-    lines = read_text(path, "results file").splitlines()
-    if not lines:
-        raise _fail(path, 1, f"empty file: expected the header {HEADER!r}")
-    header = ",".join(f.strip() for f in lines[0].split(","))
+    parts = list(iter_rows(path))
+    if len(parts) == 1:
+        res = parts[0]
+    else:
+        res = Results(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                        ("scene_id", "im_id", "obj_id", "score", "R", "t", "time", "line")), path)
+    _validate(res)
+    return res
+
+
+STREAM_BYTES = 1 << 20  # a part of a file parsed at once (~4,000 rows)
+
+
+def _check_header(path: Path, first: str) -> None:
+    header = ",".join(f.strip() for f in first.split(","))
     if header != HEADER:
         hint = ""
         if header == "scene_id,im_id,obj_id,score,R,t":
             hint = " (the time column is missing: add ',time' and -1 where not measured)"
-        raise _fail(path, 1, f"malformed header {lines[0].strip()[:80]!r}: expected {HEADER!r}{hint}")
+        raise _fail(path, 1, f"malformed header {first.strip()[:80]!r}: expected {HEADER!r}{hint}")
+
+
+def iter_rows(path: str | Path, part_bytes: int = STREAM_BYTES):
+    """The rows of a results CSV, parsed part by part (each a :class:`Results` of about
+    ``part_bytes`` of text, its rows not yet checked as a whole): the header is checked first;
+    lines are split as :meth:`str.splitlines` splits the whole text (a part ends after a "\\n");
+    bytes that are not UTF-8 are a TdofError naming their line. At least one part is yielded."""
+    import codecs
+
+    path = Path(path)
+    dec = codecs.getincrementaldecoder("utf-8-sig")()
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise TdofError(f"cannot read the results file: {e.strerror or e}", path) from None
+    with f:
+        carry, lineno, newlines, header_seen, yielded, done = "", 1, 0, False, False, False
+        while not done:
+            try:
+                data = f.read(part_bytes)
+            except OSError as e:
+                raise TdofError(f"cannot read the results file: {e.strerror or e}", path) from None
+            done = not data
+            try:
+                text = carry + dec.decode(data, final=done)
+            except UnicodeDecodeError as e:
+                line = newlines + data[: max(0, e.start)].count(b"\n") + 1
+                raise TdofError(f"line {line}: not UTF-8 text", path) from None
+            newlines += data.count(b"\n")
+            cut = len(text) if done else text.rfind("\n") + 1
+            text, carry = text[:cut], text[cut:]
+            lines = text.splitlines()
+            if not header_seen:
+                if not lines:
+                    if done:
+                        raise _fail(path, 1, f"empty file: expected the header {HEADER!r}")
+                    continue
+                _check_header(path, lines[0])
+                header_seen = True
+                lines = lines[1:]
+                lineno += 1
+            res = parse_rows(lines, path, lineno)
+            lineno += len(lines)
+            if len(res) or (done and not yielded):
+                yielded = True
+                yield res
+
+
+def parse_rows(lines: Sequence[str], path: Path, first_line: int) -> Results:
+    """The rows of ``lines`` (the file's lines from line ``first_line`` on; blank ones skipped)
+    parsed, not yet checked as a whole (:func:`read_results` checks them; a reader that streams a
+    file in parts checks each part). A TdofError naming the line on a malformed row."""
     ids: list[str] = []
     toks: list[str] = []
     ln: list[int] = []
     counts = (("score", 1), ("R", 9), ("t", 3), ("time", 1))
-    for k in range(1, len(lines)):
-        raw = lines[k]
+    for k, raw in enumerate(lines, first_line):
         f = raw.split(",")
         if len(f) != 7:
             if not raw.strip():
                 continue
-            raise _fail(path, k + 1, f"expected 7 comma-separated fields ({HEADER}), found {len(f)}")
+            raise _fail(path, k, f"expected 7 comma-separated fields ({HEADER}), found {len(f)}")
         parts = [f[3].split(), f[4].split(), f[5].split(), f[6].split()]
         if len(parts[0]) != 1 or len(parts[1]) != 9 or len(parts[2]) != 3 or len(parts[3]) != 1:
             name, n = next((nm, c) for (nm, c), p in zip(counts, parts) if len(p) != c)
             got = len(parts[[c[0] for c in counts].index(name)])
-            raise _fail(path, k + 1, f"{name} must hold {n} space-separated number{'s' if n > 1 else ''}, found {got}")
+            raise _fail(path, k, f"{name} must hold {n} space-separated number{'s' if n > 1 else ''}, found {got}")
         ids += f[:3]
         for p in parts:
             toks += p
-        ln.append(k + 1)
+        ln.append(k)
     n = len(ln)
     line = np.asarray(ln, np.int64)
     ints = np.array([_id_value(x) for x in ids], dtype=np.int64).reshape(n, 3)
@@ -200,15 +264,19 @@ def read_results(path: str | Path) -> Results:
         r, c = np.argwhere(bad)[0]
         name = "score" if c == 0 else "R" if c < 10 else "t" if c < 13 else "time"
         raise _fail(path, int(line[r]), f"{name} holds NaN or inf")
-    res = Results(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(), nums[:, 0].copy(),
-                  nums[:, 1:10].reshape(n, 3, 3).copy(), nums[:, 10:13].copy(), nums[:, 13].copy(), line, path)
-    _validate(res)
-    return res
+    return Results(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(), nums[:, 0].copy(),
+                   nums[:, 1:10].reshape(n, 3, 3).copy(), nums[:, 10:13].copy(), nums[:, 13].copy(), line, path)
 
 
 def _first(mask: np.ndarray) -> int | None:
     idx = np.flatnonzero(mask)
     return int(idx[0]) if len(idx) else None
+
+
+def check_rows(res: Results) -> None:
+    """The row-level checks of a file (numbers, ids, rotations, times, duplicates) on ``res``
+    alone: a reader that streams a file checks each part so, and what spans parts itself."""
+    _validate(res)
 
 
 def _validate(res: Results) -> None:
@@ -344,5 +412,5 @@ def write_results_csv(path: str | Path, rows: Iterable[Sequence]) -> Path:
     return path
 
 
-__all__ = ["HEADER", "ID_MAX", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "read_results", "check_against_dataset",
+__all__ = ["HEADER", "ID_MAX", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "check_rows", "iter_rows", "parse_rows", "read_results", "check_against_dataset",
            "format_results_csv", "write_results_csv"]

@@ -21,9 +21,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import Depends, FastAPI, File, Form, Request, UploadFile
+from fastapi import Depends, FastAPI, Form, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -33,11 +35,21 @@ from tdof20.server.db import init_db, make_engine
 from tdof20.server.facts import DatasetFacts
 from tdof20.server.figures import figures
 from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
+from tdof20.server.upload import read_form
 
 TEMPLATES = Path(__file__).with_name("templates")
 SESSION_COOKIE = "tdof20_session"
 SIGNIN_COOKIE = "tdof20_signin_csrf"
 BODY_SLACK = 64 * 1024  # form fields and multipart framing beside the file
+BOOLEANS = {"true": True, "1": True, "on": True, "yes": True, "false": False, "0": False, "off": False, "no": False,
+            "": False}
+_TEXT = {"type": "string"}
+SUBMIT_SCHEMA = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+    "type": "object", "required": ["file", "method", "split"],
+    "properties": {"file": {"type": "string", "format": "binary"}, "method": _TEXT, "split": _TEXT,
+                   "part": {"type": "string", "enum": ["test", "val"], "default": "test"}, "description": _TEXT,
+                   "authors": _TEXT, "hardware": _TEXT, "time_per_image": _TEXT, "training_data": _TEXT,
+                   "public": {"type": "boolean", "default": False}}}}}}}
 
 
 class BodyLimit:
@@ -47,6 +59,9 @@ class BodyLimit:
     def __init__(self, app: ASGIApp, max_bytes: int):
         self.app = app
         self.max_bytes = max_bytes
+
+    def __getattr__(self, name: str):  # (the application's ``state`` and the like, through the wrapper)
+        return getattr(self.app, name)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -88,6 +103,48 @@ class BodyLimit:
                 raise
 
 
+CSP = ("default-src 'none'; style-src 'unsafe-inline'; img-src 'self'; form-action 'self'; frame-ancestors 'none'; "
+       "base-uri 'none'")
+SECURITY_HEADERS = [(b"x-frame-options", b"DENY"), (b"content-security-policy", CSP.encode()),
+                    (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"same-origin")]
+
+
+class SecurityHeaders:
+    """Every response (pages, API, refusals, the body limit's 413) says: never in a frame
+    (X-Frame-Options DENY; CSP frame-ancestors 'none'), no script, no plugin, forms to this server
+    only (Content-Security-Policy: the pages carry no JavaScript and an inline style sheet), no
+    content-type sniffing."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    def __getattr__(self, name: str):  # (the application's ``state`` and the like, through the wrapper)
+        return getattr(self.app, name)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_headers(msg: Message) -> None:
+            if msg["type"] == "http.response.start":
+                names = {k.lower() for k, _ in msg.get("headers", [])}
+                msg["headers"] = list(msg.get("headers", [])) + [h for h in SECURITY_HEADERS if h[0] not in names]
+            await send(msg)
+
+        await self.app(scope, receive, with_headers)
+
+
+def one_line(errors) -> str:
+    """FastAPI's list of validation errors as one line: ``method: field required; split: ...``."""
+    out = []
+    for e in errors:
+        loc = [str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path", "header", "cookie")]
+        msg = str(e.get("msg", "invalid")).replace("Field required", "field required")
+        out.append(f"{'.'.join(loc) or 'request'}: {msg}")
+    return "; ".join(out)[:500] or "the request is not valid"
+
+
 async def _too_large(limit: int, send: Send) -> None:
     body = f'{{"detail":"the request is larger than the limit of {limit} bytes"}}'.encode()
     await send({"type": "http.response.start", "status": 413,
@@ -112,6 +169,7 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     store.remove_stale_uploads()
     engine = make_engine(cfg.db_url)
     init_db(engine)
+    subs.sweep_reservations(engine)
     facts = DatasetFacts(cfg.dataset)
     templates = Jinja2Templates(directory=str(TEMPLATES))
     app = FastAPI(title="tdof20 benchmark server", version="1", docs_url=None, redoc_url=None)
@@ -127,12 +185,21 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
             return JSONResponse({"detail": e.detail}, status_code=e.status_code, headers=e.headers)
         return page(request, "error.html", {"message": e.detail}, status=e.status_code)
 
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, e: RequestValidationError):
+        """A missing or malformed field: one line (``{"detail": "method: field required"}``), 422."""
+        return await _refused(request, Refused(422, one_line(e.errors())))
+
     @app.exception_handler(Refused)
     async def _refused(request: Request, e: Refused):
+        headers = {"Connection": "close"} if getattr(request.state, "unread", False) else {}
         if request.url.path.startswith("/api/"):
-            headers = {"WWW-Authenticate": "Bearer"} if e.status == 401 else None
+            if e.status == 401:
+                headers["WWW-Authenticate"] = "Bearer"
             return JSONResponse({"detail": e.message}, status_code=e.status, headers=headers)
-        return page(request, "error.html", {"message": e.message}, status=e.status)
+        resp = page(request, "error.html", {"message": e.message}, status=e.status)
+        resp.headers.update(headers)
+        return resp
 
     def api_user(request: Request) -> dict:
         header = request.headers.get("authorization", "")
@@ -162,28 +229,64 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         return templates.TemplateResponse(request, name, {"user": user, "splits": facts.splits, **ctx},
                                           status_code=status)
 
-    def fields(method, split, part, description, authors, hardware, time_per_image, training_data,
-               public) -> subs.Fields:
-        return subs.Fields(method=method, split=split, part=part, description=description, authors=authors,
-                           hardware=hardware, time_per_image=time_per_image, training_data=training_data,
-                           public=bool(public))
+    def fields(form: dict[str, str]) -> subs.Fields:
+        """The form's fields (a missing one named in one line, 422, as FastAPI would)."""
+        for name in ("method", "split"):
+            if name not in form:
+                raise Refused(422, f"{name}: field required")
+        public = form.get("public", "false").strip().lower()
+        if public not in BOOLEANS:
+            raise Refused(422, "public: must be true or false")
+        return subs.Fields(method=form["method"], split=form["split"], part=form.get("part", "test"),
+                           description=form.get("description", ""), authors=form.get("authors", ""),
+                           hardware=form.get("hardware", ""), time_per_image=form.get("time_per_image", ""),
+                           training_data=form.get("training_data", ""), public=BOOLEANS[public])
 
-    def take(user: dict, file: UploadFile, f: subs.Fields) -> dict:
-        return subs.accept(engine, store, facts, user, file.file, file.filename or "", f, cfg.max_upload_bytes,
-                           cfg.max_line_bytes, cfg.daily_limit)
+    async def take(request: Request, user: dict, csrf: bool = False) -> dict:
+        """Reserve the slot (daily limit, uploads at once) before reading a byte of the body, then
+        stream the form into the store, check and queue; the slot goes back on any refusal."""
+        request.state.unread = True  # a refusal before the body's end closes the connection after it
+        slot = await run_in_threadpool(subs.reserve, engine, user, cfg.daily_limit, cfg.max_uploads)
+        form = None
+        try:
+            form = await read_form(request, store, cfg.max_upload_bytes, cfg.max_line_bytes)
+            request.state.unread = False
+            if csrf:
+                check_csrf(user, form.fields.get("csrf", ""))
+            f = fields(form.fields)
+            if form.file is None:
+                raise Refused(422, "file: field required")
+            return await run_in_threadpool(subs.accept, engine, store, facts, user, form.file, form.filename, f,
+                                           cfg.max_upload_bytes, cfg.max_line_bytes, cfg.daily_limit, slot,
+                                           cfg.max_uploads)
+        finally:
+            if form is not None and form.file is not None:
+                form.file.path.unlink(missing_ok=True)
+            if not slot.taken:
+                await run_in_threadpool(_release, slot)
+
+    def _release(slot) -> None:
+        try:
+            subs.release(engine, slot)
+        except Exception:  # (a database without room: the slot lapses after RESERVE_S)
+            pass
 
     # ------------------------------------------------------------------ API
-    @app.post("/api/submissions", status_code=201)
-    def api_submit(user: dict = Depends(api_user), file: UploadFile = File(...), method: str = Form(...),
-                   split: str = Form(...), part: str = Form("test"), description: str = Form(""),
-                   authors: str = Form(""),
-                   hardware: str = Form(""), time_per_image: str = Form(""), training_data: str = Form(""),
-                   public: bool = Form(False)) -> dict:
-        """Submit a BOP results CSV: checked at once (a 400 names the line of the first error),
-        stored, queued; returns its status (``uid``, ``status``: queued). ``part``: test (the
-        default: ranked, aggregates only) or val (the protocol's validation part: per-image errors)."""
-        return take(user, file, fields(method, split, part, description, authors, hardware, time_per_image,
-                                       training_data, public))
+    @app.post("/api/submissions", status_code=201, openapi_extra=SUBMIT_SCHEMA)
+    async def api_submit(request: Request, user: dict = Depends(api_user)) -> dict:
+        """Submit a BOP results CSV (multipart: ``file``, ``method``, ``split``, optional ``part``,
+        ``description``, ``authors``, ``hardware``, ``time_per_image``, ``training_data``,
+        ``public``): the daily limit is checked and a slot reserved before the file is read; the
+        file is streamed to disk, checked (a 400 names the line of the first error), stored, queued;
+        returns its status (``uid``, ``status``: queued, ``quota``). ``part``: test (the default:
+        ranked, aggregates only) or val (the protocol's validation part: per-image errors)."""
+        return await take(request, user)
+
+    @app.get("/api/quota")
+    def api_quota(user: dict = Depends(api_user)) -> dict:
+        """The caller's daily limit: ``limit``, ``used``, ``left``, ``resets_at`` (UTC: when the
+        oldest counted submission leaves the 24-hour window), ``uploading``."""
+        return subs.quota(engine, user, cfg.daily_limit)
 
     @app.get("/api/submissions")
     def api_mine(user: dict = Depends(api_user)) -> list[dict]:
@@ -240,26 +343,21 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
 
     @app.get("/submit", response_class=HTMLResponse, include_in_schema=False)
     def submit_form(request: Request):
-        need_page_user(request)
-        return page(request, "submit.html", {"limits": cfg, "val_splits": [s for s in facts.splits
-                                                                           if "val" in facts.parts(s)]})
+        user = need_page_user(request)
+        return page(request, "submit.html", {"limits": cfg, "quota": subs.quota(engine, user, cfg.daily_limit),
+                                             "val_splits": [s for s in facts.splits if "val" in facts.parts(s)]})
 
     @app.post("/submit", include_in_schema=False)
-    def submit_page(request: Request, file: UploadFile = File(...), method: str = Form(...), split: str = Form(...),
-                    part: str = Form("test"), description: str = Form(""), authors: str = Form(""),
-                    hardware: str = Form(""),
-                    time_per_image: str = Form(""), training_data: str = Form(""), public: bool = Form(False),
-                    csrf: str = Form("")):
-        user = need_page_user(request)
-        check_csrf(user, csrf)
-        out = take(user, file, fields(method, split, part, description, authors, hardware, time_per_image,
-                                      training_data,
-                                      public))
+    async def submit_page(request: Request):
+        user = await run_in_threadpool(need_page_user, request)
+        out = await take(request, user, csrf=True)
         return RedirectResponse(f"/s/{out['uid']}", status_code=303)
 
     @app.get("/mine", response_class=HTMLResponse, include_in_schema=False)
     def mine_page(request: Request):
-        return page(request, "mine.html", {"rows": subs.mine(engine, need_page_user(request))})
+        user = need_page_user(request)
+        return page(request, "mine.html", {"rows": subs.mine(engine, user),
+                                           "quota": subs.quota(engine, user, cfg.daily_limit)})
 
     @app.get("/s/{uid}", response_class=HTMLResponse, include_in_schema=False)
     def submission_page(request: Request, uid: str):
@@ -284,7 +382,7 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
             raise Refused(404, "no such plot")
         return FileResponse(store.results_dir(s["uid"]) / name, media_type="image/png")
 
-    return BodyLimit(app, cfg.max_upload_bytes + BODY_SLACK)
+    return SecurityHeaders(BodyLimit(app, cfg.max_upload_bytes + BODY_SLACK))
 
 
-__all__ = ["BodyLimit", "create_app"]
+__all__ = ["BodyLimit", "SecurityHeaders", "create_app", "one_line"]

@@ -8,7 +8,9 @@ from pathlib import Path
 
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024  # a request body (results of ~200k estimates fit)
 MAX_LINE_BYTES = 4096  # a results row is ~300 bytes
-DAILY_LIMIT = 5  # submissions per user per 24 hours (withdrawn ones count)
+DAILY_LIMIT = 5  # submissions per user per 24 hours (failed by the server or withdrawn before scoring: not counted)
+MAX_UPLOADS = 2  # uploads of one user in progress at once
+RESERVE_S = 3600.0  # an upload's reserved slot lapses this long after it began (a server killed mid-upload)
 LEASE_S = 60.0  # a worker's claim on a job lasts this long unless renewed
 
 
@@ -23,6 +25,7 @@ class ServerConfig:
     max_upload_bytes: int = MAX_UPLOAD_BYTES
     max_line_bytes: int = MAX_LINE_BYTES
     daily_limit: int = DAILY_LIMIT
+    max_uploads: int = MAX_UPLOADS
     lease_s: float = LEASE_S
     secure_cookies: bool = False  # set behind HTTPS
 
@@ -31,4 +34,4 @@ class ServerConfig:
         return self.db or f"sqlite:///{Path(self.data).resolve() / 'server.db'}"
 
 
-__all__ = ["DAILY_LIMIT", "LEASE_S", "MAX_LINE_BYTES", "MAX_UPLOAD_BYTES", "ServerConfig"]
+__all__ = ["DAILY_LIMIT", "LEASE_S", "MAX_LINE_BYTES", "MAX_UPLOADS", "MAX_UPLOAD_BYTES", "RESERVE_S", "ServerConfig"]

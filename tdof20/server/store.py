@@ -66,37 +66,19 @@ class Store:
     def receive(self, src: BinaryIO, max_bytes: int, max_line: int) -> Stored:
         """Copy ``src`` into tmp/ in chunks: refused (413) beyond ``max_bytes`` or a line longer than
         ``max_line``, (507) when the disk is full; the temp file goes on any refusal."""
-        tmp = self.root / "tmp" / f"{self.host}.{os.getpid()}.{secrets.token_hex(16)}.part"
-        h = hashlib.sha256()
-        size = line = 0
+        w = self.writer(max_bytes, max_line)
         try:
-            with open(tmp, "xb") as f:
-                while chunk := src.read(CHUNK):
-                    size += len(chunk)
-                    if size > max_bytes:
-                        raise Refused(413, f"the file is larger than the limit of {max_bytes} bytes")
-                    parts = chunk.split(b"\n")
-                    longest = line + len(parts[0])  # the line the previous chunk left open
-                    if len(parts) > 1:
-                        longest = max([longest] + [len(p) for p in parts[1:-1]])
-                        line = len(parts[-1])
-                    else:
-                        line = longest
-                    if max(longest, line) > max_line:
-                        raise Refused(413, f"a line is longer than the limit of {max_line} bytes")
-                    h.update(chunk)
-                    f.write(chunk)
-                f.flush()
-                os.fsync(f.fileno())
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
-            if e.errno in FULL_ERRNOS:
-                raise Refused(507, FULL) from None
-            raise
+            while chunk := src.read(CHUNK):
+                w.write(chunk)
+            return w.finish()
         except BaseException:
-            tmp.unlink(missing_ok=True)
+            w.abort()
             raise
-        return Stored(tmp, size, h.hexdigest())
+
+    def writer(self, max_bytes: int, max_line: int) -> "Upload":
+        """An upload written into tmp/ as it arrives (:class:`Upload`): memory O(1) in its size."""
+        return Upload(self.root / "tmp" / f"{self.host}.{os.getpid()}.{secrets.token_hex(16)}.part", max_bytes,
+                      max_line)
 
     def keep(self, stored: Stored, name: str) -> None:
         """Move an accepted file to submissions/<name> and make the rename durable."""
@@ -106,6 +88,61 @@ class Store:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+class Upload:
+    """A file written chunk by chunk to ``path`` (exclusive create): its size and longest line are
+    checked as it comes (413), a full disk is the one-line 507; :meth:`finish` syncs it,
+    :meth:`abort` (on any refusal) removes it."""
+
+    def __init__(self, path: Path, max_bytes: int, max_line: int):
+        self.path, self.max_bytes, self.max_line = path, max_bytes, max_line
+        self.size = self.line = 0
+        self.h = hashlib.sha256()
+        try:
+            self.f = open(path, "xb")
+        except OSError as e:
+            raise _full(e) from None
+
+    def write(self, chunk: bytes) -> None:
+        self.size += len(chunk)
+        if self.size > self.max_bytes:
+            raise Refused(413, f"the file is larger than the limit of {self.max_bytes} bytes")
+        parts = chunk.split(b"\n")
+        longest = self.line + len(parts[0])  # the line the previous chunk left open
+        if len(parts) > 1:
+            longest = max([longest] + [len(p) for p in parts[1:-1]])
+            self.line = len(parts[-1])
+        else:
+            self.line = longest
+        if max(longest, self.line) > self.max_line:
+            raise Refused(413, f"a line is longer than the limit of {self.max_line} bytes")
+        self.h.update(chunk)
+        try:
+            self.f.write(chunk)
+        except OSError as e:
+            raise _full(e) from None
+
+    def finish(self) -> Stored:
+        try:
+            self.f.flush()
+            os.fsync(self.f.fileno())
+            self.f.close()
+        except OSError as e:
+            raise _full(e) from None
+        return Stored(self.path, self.size, self.h.hexdigest())
+
+    def abort(self) -> None:
+        try:
+            self.f.close()
+        except OSError:
+            pass
+        self.path.unlink(missing_ok=True)
+
+
+def _full(e: OSError) -> BaseException:
+    """A write's OSError: the one-line 507 when it found no room, else itself."""
+    return Refused(507, FULL) if e.errno in FULL_ERRNOS else e
 
 
 def _alive(pid: int) -> bool:
@@ -118,4 +155,4 @@ def _alive(pid: int) -> bool:
     return True
 
 
-__all__ = ["FULL", "FULL_ERRNOS", "Refused", "Store", "Stored"]
+__all__ = ["FULL", "FULL_ERRNOS", "Refused", "Store", "Stored", "Upload"]

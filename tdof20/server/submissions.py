@@ -10,13 +10,15 @@ import time
 from dataclasses import dataclass, field
 from typing import BinaryIO
 
-from sqlalchemy import Engine, and_, func, insert, select, update
+from sqlalchemy import Engine, and_, delete, insert, select, update
 from sqlalchemy.exc import OperationalError
 
 from tdof20.errors import TdofError
+from tdof20.server.check import check_file
+from tdof20.server.config import MAX_UPLOADS, RESERVE_S
 from tdof20.server.db import jobs, submissions, users
 from tdof20.server.facts import DatasetFacts
-from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
+from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store, Stored
 
 TEXT_FIELDS = {"method": 100, "description": 4000, "authors": 1000, "hardware": 500, "time_per_image": 100,
                "training_data": 1000}
@@ -59,50 +61,148 @@ def _message(e: TdofError) -> str:
     return text
 
 
-def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: BinaryIO, filename: str,
-           fields: Fields, max_bytes: int, max_line: int, daily_limit: int) -> dict:
-    """Check, store durably and queue one submission; returns its status dict. Refused (with an
-    HTTP status and one line) on a limit, a bad field or the first error of the strict checks;
-    nothing is stored or queued then."""
-    fields.checked()
-    if fields.split not in facts.splits:
-        raise Refused(400, f"split must be one of {', '.join(facts.splits)}")
-    if fields.part not in facts.parts(fields.split):
-        raise Refused(400, f"part must be one of {', '.join(facts.parts(fields.split))} for {fields.split} "
-                           "(val: the protocol's validation part, where this server has one)")
+@dataclass
+class Slot:
+    """A submission's place in its owner's daily limit, reserved before the file is read: a row of
+    status ``receiving`` (no job yet, so no page or list shows it) that :func:`accept` fills and
+    queues, or :func:`release` deletes."""
+
+    id: int
+    uid: str
+    taken: bool = False
+
+
+def _window(c, user_id: int, now: float) -> tuple[list[float], int]:
+    """(creation times of the submissions that count against the limit, uploads in progress).
+    Counted: queued, scoring or scored ones, uploads in progress, and ones withdrawn once scoring
+    began; not counted: failed ones (a failure is the server's) and ones withdrawn before scoring."""
+    rows = c.execute(select(submissions.c.created, submissions.c.status, jobs.c.state)
+                     .select_from(submissions.outerjoin(jobs, jobs.c.submission_id == submissions.c.id))
+                     .where(and_(submissions.c.user_id == user_id, submissions.c.created > now - 86400))).all()
+    counted, uploading = [], 0
+    for r in rows:
+        if r.status == "receiving":
+            if r.created > now - RESERVE_S:  # (older: a server killed mid-upload; swept at start)
+                counted.append(r.created)
+                uploading += 1
+        elif r.status in ("queued", "scoring", "done") or (r.status == "withdrawn" and r.state not in
+                                                            (None, "cancelled")):
+            counted.append(r.created)
+    return sorted(counted), uploading
+
+
+def _utc(t: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t))
+
+
+def quota(engine: Engine, user: dict, daily_limit: int) -> dict:
+    """The user's daily limit now: {"limit", "used", "left", "resets_at" (when the oldest counted
+    submission leaves the 24-hour window and a slot comes back; None when none is used),
+    "resets_at_unix", "uploading"}."""
+    now = time.time()
     with engine.begin() as c:
-        n = c.execute(select(func.count()).select_from(submissions).where(and_(
-            submissions.c.user_id == user["id"], submissions.c.created > time.time() - 86400))).scalar_one()
-    if n >= daily_limit:
-        raise Refused(429, f"limit reached: {daily_limit} submissions per user per 24 hours")
-    got = store.receive(src, max_bytes, max_line)
+        counted, uploading = _window(c, user["id"], now)
+    reset = counted[0] + 86400 if counted else None
+    return {"limit": daily_limit, "used": len(counted), "left": max(0, daily_limit - len(counted)),
+            "resets_at": None if reset is None else _utc(reset), "resets_at_unix": reset, "uploading": uploading}
+
+
+def reserve(engine: Engine, user: dict, daily_limit: int, max_uploads: int = MAX_UPLOADS) -> Slot:
+    """Check the daily limit and the uploads in progress and reserve a slot, in one transaction
+    (SQLite: its single writer lock, BEGIN IMMEDIATE; PostgreSQL: the user's row locked FOR UPDATE),
+    so that concurrent uploads never pass the limit together. 429 in one line when over either."""
+    now = time.time()
     try:
+        with engine.begin() as c:
+            if c.dialect.name == "postgresql":
+                c.execute(select(users.c.id).where(users.c.id == user["id"]).with_for_update())
+            counted, uploading = _window(c, user["id"], now)
+            if len(counted) >= daily_limit:
+                raise Refused(429, f"limit reached: {daily_limit} submissions per user per 24 hours; the next one "
+                                   f"can be sent after {_utc(counted[0] + 86400)}")
+            if uploading >= max_uploads:
+                raise Refused(429, f"{uploading} uploads of yours are in progress (at most {max_uploads} at once): "
+                                   "send this one when one has finished")
+            uid = secrets.token_hex(8)
+            sid = c.execute(insert(submissions).values(
+                uid=uid, user_id=user["id"], method="", split="", part="test", filename="", stored="", size=0,
+                sha256="", n_rows=0, status="receiving", created=now, scored_count=0)).inserted_primary_key[0]
+    except OperationalError as e:  # nothing reserved: a full disk under the database, or one too busy
+        raise Refused(507, FULL) if _disk_full(e) else Refused(503, "the server's database is busy: try again "
+                                                                     "in a minute") from None
+    return Slot(sid, uid)
+
+
+def release(engine: Engine, slot: Slot) -> None:
+    """Give back a slot whose upload was refused (or cut); a slot already taken stays."""
+    if slot.taken:
+        return
+    with engine.begin() as c:
+        c.execute(delete(submissions).where(and_(submissions.c.id == slot.id, submissions.c.status == "receiving")))
+
+
+def sweep_reservations(engine: Engine) -> int:
+    """Delete the slots of uploads that began over :data:`RESERVE_S` ago and never finished (their
+    server was killed mid-upload): they stopped counting then. Returns how many."""
+    with engine.begin() as c:
+        return c.execute(delete(submissions).where(and_(submissions.c.status == "receiving",
+                                                        submissions.c.created < time.time() - RESERVE_S))).rowcount
+
+
+def accept(engine: Engine, store: Store, facts: DatasetFacts, user: dict, src: BinaryIO | Stored, filename: str,
+           fields: Fields, max_bytes: int, max_line: int, daily_limit: int, slot: Slot | None = None,
+           max_uploads: int = MAX_UPLOADS) -> dict:
+    """Check, store durably and queue one submission; returns its status dict (with ``quota``).
+    ``slot``: the place :func:`reserve` gave it before its file was read (the server's way); without
+    one it is reserved here. ``src``: the file, already in the store's tmp/ (a :class:`Stored`) or
+    a stream to copy there. Refused (with an HTTP status and one line) on a limit, a bad field or
+    the first error of the strict checks (streamed: :func:`tdof20.server.check.check_file`);
+    nothing is stored or queued then, and the slot is given back."""
+    slot = slot if slot is not None else reserve(engine, user, daily_limit, max_uploads)
+    try:
+        fields.checked()
+        if fields.split not in facts.splits:
+            raise Refused(400, f"split must be one of {', '.join(facts.splits)}")
+        if fields.part not in facts.parts(fields.split):
+            raise Refused(400, f"part must be one of {', '.join(facts.parts(fields.split))} for {fields.split} "
+                               "(val: the protocol's validation part, where this server has one)")
+        got = src if isinstance(src, Stored) else store.receive(src, max_bytes, max_line)
         try:
-            res = facts.check(got.path, fields.split, fields.part)
-        except TdofError as e:
-            raise Refused(400, _message(e)) from None
-        uid = secrets.token_hex(8)
-        name = f"{uid}.csv"
-        store.keep(got, name)
-        now = time.time()
-        try:
-            with engine.begin() as c:
-                sid = c.execute(insert(submissions).values(
-                    uid=uid, user_id=user["id"], method=fields.method.strip(), split=fields.split, part=fields.part,
-                    description=fields.description, authors=fields.authors, hardware=fields.hardware,
-                    time_per_image=fields.time_per_image, training_data=fields.training_data, public=fields.public,
-                    filename=(filename or "results.csv")[-255:], stored=name, size=got.size, sha256=got.sha256,
-                    n_rows=len(res), status="queued", created=now, scored_count=0)).inserted_primary_key[0]
-                c.execute(insert(jobs).values(submission_id=sid, state="queued", attempts=0, stage="queued"))
-        except BaseException as e:  # not committed: its file goes too
-            store.submission_path(name).unlink(missing_ok=True)
-            if _disk_full(e):
-                raise Refused(507, FULL) from None
-            raise
+            try:
+                res = check_file(got.path, facts, fields.split)
+            except TdofError as e:
+                raise Refused(400, _message(e)) from None
+            name = f"{slot.uid}.csv"
+            store.keep(got, name)
+            try:
+                with engine.begin() as c:
+                    r = c.execute(update(submissions).where(and_(submissions.c.id == slot.id,
+                                                                 submissions.c.status == "receiving")).values(
+                        method=fields.method.strip(), split=fields.split, part=fields.part,
+                        description=fields.description, authors=fields.authors, hardware=fields.hardware,
+                        time_per_image=fields.time_per_image, training_data=fields.training_data,
+                        public=fields.public, filename=(filename or "results.csv")[-255:], stored=name,
+                        size=got.size, sha256=got.sha256, n_rows=res.n_rows, status="queued"))
+                    if r.rowcount != 1:  # (swept: the upload took longer than RESERVE_S)
+                        raise Refused(408, "the upload took too long and its slot lapsed: send it again")
+                    c.execute(insert(jobs).values(submission_id=slot.id, state="queued", attempts=0, stage="queued"))
+            except BaseException as e:  # not committed: its file goes too
+                store.submission_path(name).unlink(missing_ok=True)
+                if _disk_full(e):
+                    raise Refused(507, FULL) from None
+                raise
+            slot.taken = True
+        finally:
+            got.path.unlink(missing_ok=True)
     finally:
-        got.path.unlink(missing_ok=True)
-    out = get(engine, uid, user)
+        if not slot.taken:
+            try:
+                release(engine, slot)
+            except Exception:  # (a database without room: the slot lapses after RESERVE_S)
+                pass
+    out = get(engine, slot.uid, user)
     out["warnings"] = list(res.warnings)
+    out["quota"] = quota(engine, user, daily_limit)
     return out
 
 
@@ -181,4 +281,5 @@ def leaderboard(engine: Engine, split: str, metric: str = "add_s") -> list[dict]
     return out
 
 
-__all__ = ["Fields", "LEADERBOARD_METRICS", "accept", "get", "leaderboard", "mine", "withdraw"]
+__all__ = ["Fields", "LEADERBOARD_METRICS", "Slot", "accept", "quota", "release", "reserve", "sweep_reservations",
+           "get", "leaderboard", "mine", "withdraw"]
