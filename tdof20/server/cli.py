@@ -11,7 +11,7 @@ import typer
 
 from tdof20.errors import TdofError
 from tdof20.server.client import submit
-from tdof20.server.config import DAILY_LIMIT, LEASE_S, MAX_UPLOAD_BYTES, ServerConfig
+from tdof20.server.config import DAILY_LIMIT, LEASE_S, MAX_UPLOAD_BYTES, MAX_UPLOADS, ServerConfig
 from tdof20.server.publish import publish
 
 # the database, accounts and worker (sqlalchemy, argon2, the scorer: ~1 s of imports) are imported
@@ -35,7 +35,9 @@ def serve(ctx: typer.Context,
           host: str = typer.Option("127.0.0.1", help="address to listen on"),
           port: int = typer.Option(8020, help="port"),
           max_upload: int = typer.Option(MAX_UPLOAD_BYTES, help="largest results file, bytes"),
-          daily_limit: int = typer.Option(DAILY_LIMIT, help="submissions per user per 24 hours"),
+          daily_limit: int = typer.Option(DAILY_LIMIT, help="submissions per user per 24 hours (failed or "
+                                                            "withdrawn-before-scoring ones not counted)"),
+          max_uploads: int = typer.Option(MAX_UPLOADS, help="uploads of one user in progress at once"),
           secure_cookies: bool = typer.Option(False, help="mark cookies Secure (behind HTTPS)")) -> None:
     """``tdof20 serve --dataset ROOT [--db URL] [--host H --port P]``: run the HTTP server (scoring
     happens in ``tdof20 serve worker`` processes)."""
@@ -47,8 +49,10 @@ def serve(ctx: typer.Context,
 
     from tdof20.server.app import create_app
 
+    if daily_limit < 1 or max_uploads < 1:
+        raise TdofError("--daily-limit and --max-uploads must be at least 1")
     cfg = ServerConfig(dataset=dataset, data=data, db=db, max_upload_bytes=max_upload, daily_limit=daily_limit,
-                       secure_cookies=secure_cookies)
+                       max_uploads=max_uploads, secure_cookies=secure_cookies)
     uvicorn.run(create_app(cfg), host=host, port=port, log_level="info")
 
 
@@ -59,13 +63,32 @@ def worker(dataset: Path = typer.Option(..., help="the full dataset (with test l
            lease: float = typer.Option(LEASE_S, help="seconds a claim lasts unless renewed"),
            once: bool = typer.Option(False, help="stop when the queue is empty"),
            poll: float = typer.Option(1.0, help="seconds between looks at an empty queue"),
-           pause: float = typer.Option(0.0, help="seconds to wait after claiming a job (for drills)")) -> None:
-    """Score queued submissions (any number of workers, sharing the database and DATA)."""
+           pause: float = typer.Option(0.0, help="seconds to wait after claiming a job (for drills)"),
+           max_wait: float = typer.Option(30.0, help="longest wait, seconds, after a full disk or a database "
+                                                     "error (the job goes back to the queue)")) -> None:
+    """Score queued submissions (any number of workers, sharing the database and DATA). A full disk
+    or a database error gives the job back (not counted as a try) and the worker waits and goes on."""
     from tdof20.server.worker import run_worker  # the database and the scorer
 
     n = run_worker(ServerConfig(dataset=dataset, data=data, db=db, lease_s=lease), once=once, poll_s=poll,
-                   pause_s=pause)
+                   pause_s=pause, max_wait_s=max_wait)
     typer.echo(f"scored {n} submission(s)")
+
+
+@serve_app.command("requeue")
+def requeue_command(uid: Optional[str] = typer.Argument(None, help="the failed submission to score again"),
+                    failed: bool = typer.Option(False, "--failed", help="every failed submission"),
+                    data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+                    db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Queue failed submissions again, their tries reset (``requeue UID`` or ``requeue --failed``):
+    after the operator fixed what made them fail (a full disk, a database down)."""
+    from tdof20.server.db import requeue  # sqlalchemy
+
+    if (uid is None) == (not failed):
+        raise TdofError("give one submission's UID or --failed (every failed submission), not both")
+    uids = requeue(_engine(data, db), uid, failed)
+    typer.echo(f"queued again {len(uids)} submission(s){': ' + ', '.join(uids[:20]) if uids else ''}"
+               f"{' ...' if len(uids) > 20 else ''}")
 
 
 def _auth():
@@ -146,4 +169,5 @@ def publish_command(root: Path = typer.Argument(..., help="the full dataset (tdo
                f"{info['label_files_dropped']} label files left out")
 
 
-__all__ = ["app", "publish_command", "serve", "serve_app", "submit_command", "user_app", "worker"]
+__all__ = ["app", "publish_command", "requeue_command", "serve", "serve_app", "submit_command", "user_app",
+           "worker"]

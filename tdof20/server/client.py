@@ -27,6 +27,36 @@ def _multipart(fields: dict[str, str], filename: str, data: bytes) -> tuple[byte
     return b"".join(parts), f"multipart/form-data; boundary={boundary}"
 
 
+def _detail_line(detail) -> str:
+    """A refusal's ``detail`` as one line: a string as it is; a list of FastAPI's validation errors
+    (an older server's 422) as ``loc: msg; ...``; anything else as compact JSON."""
+    if isinstance(detail, str):
+        text = detail
+    elif isinstance(detail, list) and all(isinstance(d, dict) for d in detail):
+        text = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', ()) if x != 'body') or 'request'}: "
+                         f"{d.get('msg', 'invalid')}" for d in detail)
+    else:
+        text = json.dumps(detail, separators=(",", ":"), default=str)
+    return " ".join(text.split())[:500]
+
+
+def refusal_line(e: urllib.error.HTTPError) -> str:
+    """The one line of an HTTP refusal: its JSON ``detail``, else the first line of its text, else
+    the status's reason (never a Python repr)."""
+    try:
+        body = e.read(64 * 1024)
+    except OSError:
+        body = b""
+    try:
+        data = json.loads(body)
+        if isinstance(data, dict) and "detail" in data:
+            return _detail_line(data["detail"]) or str(e.reason)
+    except ValueError:
+        pass
+    first = next((ln.strip() for ln in body.decode("utf-8", "replace").splitlines() if ln.strip()), "")
+    return (" ".join(first.split())[:200] if first and not first.startswith("<") else "") or str(e.reason)
+
+
 def submit(results: str | Path, server: str, token: str, method: str, split: str, description: str = "",
            authors: str = "", hardware: str = "", time_per_image: str = "", training_data: str = "",
            public: bool = False, part: str = "test") -> dict:
@@ -46,13 +76,9 @@ def submit(results: str | Path, server: str, token: str, method: str, split: str
         with urllib.request.urlopen(req, timeout=TIMEOUT_S) as r:
             return json.loads(r.read())
     except urllib.error.HTTPError as e:
-        try:
-            detail = json.loads(e.read()).get("detail", "")
-        except (ValueError, AttributeError):
-            detail = e.reason
-        raise TdofError(f"the server refused the submission ({e.code}): {detail}", path) from None
+        raise TdofError(f"the server refused the submission ({e.code}): {refusal_line(e)}", path) from None
     except (urllib.error.URLError, OSError) as e:
         raise TdofError(f"cannot reach the server {server}: {getattr(e, 'reason', e)}") from None
 
 
-__all__ = ["submit"]
+__all__ = ["refusal_line", "submit"]

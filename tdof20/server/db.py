@@ -23,7 +23,9 @@ and each submission gets exactly one result.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import secrets
 import time
 from dataclasses import dataclass
@@ -107,6 +109,7 @@ def make_engine(url: str) -> Engine:
     if url.startswith("postgresql://"):
         url = "postgresql+psycopg://" + url[len("postgresql://"):]
     if url.startswith("sqlite"):
+        _private(url)
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
 
         @event.listens_for(engine, "connect")
@@ -126,6 +129,21 @@ def make_engine(url: str) -> Engine:
     if url.startswith("postgresql+psycopg://"):
         return create_engine(url, pool_pre_ping=True)
     raise TdofError(f"--db must be sqlite:///PATH or postgresql://..., got {url.split(':', 1)[0]}:...")
+
+
+def _private(url: str) -> None:
+    """The SQLite file (token hashes, sessions, scores) readable by its owner only: created 0600,
+    an older one's mode narrowed to it (SQLite gives its -wal and -shm files the file's mode)."""
+    path = url.split("sqlite:///", 1)[1].split("?", 1)[0] if url.startswith("sqlite:///") else ""
+    if not path or path == ":memory:" or not Path(path).parent.is_dir():
+        return
+    try:
+        os.close(os.open(path, os.O_CREAT | os.O_RDWR, 0o600))
+        for p in (path, path + "-wal", path + "-shm"):
+            if os.path.exists(p) and os.stat(p).st_mode & 0o077:
+                os.chmod(p, 0o600)
+    except OSError:  # (a read-only place, another owner's file: SQLite says why when it opens it)
+        pass
 
 
 def _alembic() -> AlembicConfig:
@@ -231,6 +249,61 @@ def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | N
         return True
 
 
+def release_job(engine: Engine, claim: Claim) -> bool:
+    """Give a claimed job back to the queue, not counted as a try (its worker met a full disk or a
+    database error: the server's trouble, not the submission's); False when the claim was no
+    longer the job's (its lease had expired: that try counts, as any expired lease does)."""
+    with engine.begin() as c:
+        r = c.execute(update(jobs).where(and_(jobs.c.id == claim.job_id, jobs.c.claim == claim.claim,
+                                              jobs.c.state == "running")).values(
+            state="queued", claim=None, worker=None, lease_until=None, stage="queued",
+            attempts=jobs.c.attempts - 1))
+        if r.rowcount != 1:
+            return False
+        c.execute(update(submissions).where(and_(submissions.c.id == claim.submission_id,
+                                                 submissions.c.status == "scoring")).values(status="queued"))
+        return True
+
+
+def requeue(engine: Engine, uid: str | None = None, failed: bool = False) -> list[str]:
+    """Queue again the failed submission ``uid`` (or, ``failed``, every failed one) with its tries
+    reset: the operator's way back for submissions that failed through the server's trouble.
+    Returns their uids; a uid that is not a failed submission is a TdofError in one line."""
+    with engine.begin() as c:
+        q = (select(submissions.c.id, submissions.c.uid, submissions.c.status)
+             .select_from(submissions.join(jobs, jobs.c.submission_id == submissions.c.id)))
+        rows = c.execute(q.where(submissions.c.uid == uid) if uid is not None
+                         else q.where(submissions.c.status == "failed")).all()
+        if uid is not None and not rows:
+            raise TdofError(f"no submission {uid[:40]}")
+        if uid is not None and rows[0].status != "failed":
+            raise TdofError(f"submission {uid} is {rows[0].status}, not failed: only a failed one is queued again "
+                            "(each submission is scored once)")
+        ids = [r.id for r in rows]
+        if ids:
+            c.execute(update(jobs).where(jobs.c.submission_id.in_(ids)).values(
+                state="queued", claim=None, worker=None, lease_until=None, attempts=0, stage="queued", finished=None))
+            c.execute(update(submissions).where(submissions.c.id.in_(ids)).values(status="queued", error=None,
+                                                                                  result=None, scored=None))
+        return [r.uid for r in rows]
+
+
+def is_resource_error(e: BaseException) -> bool:
+    """Whether ``e`` is the server's trouble, not the submission's: a write that found no room
+    (ENOSPC, EDQUOT, EFBIG) or a database error (no room, locked, gone), at any depth of its causes."""
+    from sqlalchemy.exc import DBAPIError, OperationalError
+
+    seen = 0
+    while e is not None and seen < 20:  # bounded: a cause chain
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO):
+            return True
+        if isinstance(e, (OperationalError, DBAPIError)):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
+
+
 __all__ = ["Claim", "MAX_ATTEMPTS", "MIGRATIONS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat", "init_db",
+           "is_resource_error", "release_job", "requeue",
            "jobs",
            "make_engine", "meta", "metadata", "sessions", "submissions", "users"]

@@ -32,7 +32,8 @@ from tdof20.scoring import evaluate
 from tdof20.scoring import report
 from tdof20.scoring.dataset_view import DatasetView
 from tdof20.server.config import ServerConfig
-from tdof20.server.db import Claim, claim_job, finish_job, heartbeat, init_db, make_engine, submissions
+from tdof20.server.db import (Claim, claim_job, finish_job, heartbeat, init_db, is_resource_error, make_engine,
+                              release_job, submissions)
 from tdof20.server.facts import validation_targets
 from tdof20.server.figures import save_figure_data
 from tdof20.server.store import Store
@@ -71,8 +72,12 @@ def per_image_errors(results: Path, root: Path, targets: list[dict], lease) -> l
 
 def _renew(engine: Engine, claim: Claim, lease_s: float, stop: threading.Event) -> None:
     while not stop.wait(lease_s / 3):
-        if not heartbeat(engine, claim, lease_s):
-            return
+        try:
+            if not heartbeat(engine, claim, lease_s):
+                return
+        except Exception as e:  # a database error: try again at the next beat (the lease may lapse)
+            if not is_resource_error(e):
+                raise
 
 
 def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pause_s: float = 0.0) -> bool:
@@ -108,6 +113,8 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
                 result["per_image"] = per_image_errors(path, cfg.dataset, targets,
                                                        lambda: heartbeat(engine, claim, cfg.lease_s))
         except TdofError as e:
+            if is_resource_error(e):  # (a write that found no room, inside a reader or writer)
+                raise
             print(f"worker: submission {sub.uid}: {e}", file=sys.stderr)
             error = FAILED
     finally:
@@ -116,23 +123,52 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
     return finish_job(engine, claim, result, error)
 
 
+def _why(e: BaseException) -> str:
+    """One line on a resource error (never a traceback)."""
+    text = " ".join(str(getattr(e, "orig", None) or e).split())
+    return f"{type(e).__name__}: {text[:200]}"
+
+
 def run_worker(cfg: ServerConfig, once: bool = False, poll_s: float = 1.0, pause_s: float = 0.0,
-               max_jobs: int | None = None) -> int:
-    """Claim and score jobs until stopped (``once``: until the queue is empty); returns jobs recorded."""
+               max_jobs: int | None = None, max_wait_s: float = 30.0) -> int:
+    """Claim and score jobs until stopped (``once``: until the queue is empty); returns jobs recorded.
+
+    A full disk or a database error (claiming, scoring, writing what the figures are drawn from,
+    recording) does not stop the worker and does not count as a try: it gives its job back to the
+    queue (:func:`~tdof20.server.db.release_job`; retried until the database takes it, else the
+    lease lapses), says so in one line on stderr and waits — ``poll_s``, doubling up to
+    ``max_wait_s`` while the trouble lasts — before it claims again. With ``once`` it still stops
+    only when the queue is empty, so a job given back is scored once room is freed."""
     store = Store(cfg.data)  # (the folder first: the SQLite file lies in it)
     engine = make_engine(cfg.db_url)
     init_db(engine)
     name = f"{socket.gethostname()}:{os.getpid()}"
     done = 0
+    wait = 0.0
+    pending: Claim | None = None  # a job to give back
     try:
         while max_jobs is None or done < max_jobs:
-            claim = claim_job(engine, name, cfg.lease_s)
-            if claim is None:
-                if once:
-                    break
-                time.sleep(poll_s)
-                continue
-            done += score_one(engine, store, cfg, claim, pause_s)
+            claim = None
+            try:
+                if pending is not None:
+                    release_job(engine, pending)
+                    pending = None
+                claim = claim_job(engine, name, cfg.lease_s)
+                if claim is None:
+                    if once:
+                        break
+                    time.sleep(poll_s)
+                    continue
+                done += score_one(engine, store, cfg, claim, pause_s)
+                wait = 0.0
+            except Exception as e:
+                if not is_resource_error(e):
+                    raise
+                pending = pending or claim
+                wait = min(max_wait_s, max(poll_s, 2 * wait))
+                what = f"job of submission {pending.submission_id} given back; " if pending is not None else ""
+                print(f"worker: {_why(e)}: {what}waiting {wait:g} s", file=sys.stderr, flush=True)
+                time.sleep(wait)
     finally:
         engine.dispose()
     return done
