@@ -58,7 +58,10 @@ def test_sign_in_upload_watch_it_scored_and_ranked(dataset, tmp_path):
                     # the page refreshes itself while queued or scoring; the worker scores it
                     expect(page.locator("#status")).to_have_text("done", timeout=180_000)
                     expect(page.locator("h2", has_text="Per object")).to_be_visible()
-                    assert page.locator(".plots img").count() >= 3
+                    # a test part on 9 targets: every cell withheld, the rule said, no curve drawn
+                    expect(page.locator("#disclosure")).to_be_visible()
+                    assert page.locator("td.miss", has_text="withheld").count() >= 1
+                    assert page.locator(".plots img").count() == 0
                     assert page.locator("#per-image").count() == 0  # a test submission: aggregates only
                     results_url = page.url
                     page.click("text=Leaderboard")

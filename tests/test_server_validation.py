@@ -76,7 +76,8 @@ def test_per_image_errors_only_for_a_validation_part(val_server):
         ims = [e for e in json.loads(text) if e["uid"] == tuid]
         assert ims and all("per_image" not in (e["result"] or {}) for e in ims)
     files = sorted(p.name for p in (s.cfg.data / "results" / tuid).iterdir())
-    assert all(f.startswith(("accuracy_", "recall_")) and f.endswith(".png") or f in ("figure_data.npz", "figures.json")
+    assert all(f.startswith(("accuracy_", "recall_", "shown_")) and f.endswith(".png")
+               or f in ("figure_data.npz", "figures.json", "figures_shown.json")
                for f in files), files  # what the figures are drawn from (errors only), and the figures
     # validation runs are not ranked
     board = s.client.get("/api/leaderboard", params={"split": "simple"}).json()

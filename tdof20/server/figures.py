@@ -15,7 +15,14 @@ tells — and caches them in the same folder with :data:`FIGURES`, the list of t
 Concurrent requests: in one process drawing is serialised by a lock (pyplot is not thread-safe)
 and a request that waited finds the figures drawn; across processes (several servers sharing the
 store) each draws into a temp folder of its own and renames each PNG into place, then writes the
-list last, so a reader sees either no list or a list whose PNGs are whole."""
+list last, so a reader sees either no list or a list whose PNGs are whole.
+
+What a test part's figure may show: no more than its numbers (:mod:`tdof20.server.disclosure`).
+Accuracy curves drawn from the per-target errors step at each target's error, and a pooled curve
+with one probe estimate shows that target's error exactly, whatever the tables round to. So the
+curves are drawn only for a validation part (public labels); a test part gets
+:data:`SHOWN_FIGURE`, its shown per-object values as bars, drawn from the disclosed result alone
+(nothing else is read), so the PNG is a function of numbers the page already prints."""
 
 from __future__ import annotations
 
@@ -36,6 +43,9 @@ from tdof20.scoring.evaluation import Evaluation, ObjectEval
 
 FIGURE_DATA = "figure_data.npz"
 FIGURES = "figures.json"
+SHOWN_FIGURES = "figures_shown.json"  # the list of a test part's figures (drawn from disclosed values)
+SHOWN_FIGURE = "shown_per_object.png"
+SHOWN_METRICS = {"add_s": "ADD(S)", "proj2d": "2D projection", "auc_add_s": "AUC ADD(S)"}
 ARRAYS = ("add", "adds", "proj", "add_ok", "adds_ok", "proj_ok", "adds_exact", "scene")
 _DRAW = threading.Lock()
 
@@ -77,10 +87,10 @@ def load_figure_data(path: Path, method: str) -> Evaluation:
                       object_labels={int(k): v for k, v in meta["object_labels"].items()}, proj_px=meta["proj_px"])
 
 
-def _listed(folder: Path) -> list[str] | None:
+def _listed(folder: Path, listing: str = FIGURES) -> list[str] | None:
     """The names in the figure list when it and every PNG it names are there."""
     try:
-        names = json.loads((folder / FIGURES).read_text())
+        names = json.loads((folder / listing).read_text())
     except (OSError, ValueError):
         return None
     if isinstance(names, list) and all(isinstance(n, str) and (folder / n).is_file() for n in names):
@@ -90,10 +100,15 @@ def _listed(folder: Path) -> list[str] | None:
 
 def figures(folder: Path, method: str, result: dict) -> list[str]:
     """The names of a scored submission's figures in ``folder`` (its results folder), drawing them
-    first where they are not there yet. A result scored by a worker that drew its figures itself
+    first where they are not there yet. ``result`` is the result as shown
+    (:func:`tdof20.server.disclosure.disclose`): a validation part's figures are the accuracy
+    curves; any other's (a test part, or a result that does not say) the shown values' bars
+    (:func:`shown_figures`). A validation result scored by a worker that drew its figures itself
     (tdof20 before lazy figures) lists them in ``result["plots"]``. [] when there is nothing to draw
     from or the drawing failed (logged; the page shows its tables without figures)."""
     folder = Path(folder)
+    if ((result or {}).get("disclosure") or {}).get("part") != "val":
+        return shown_figures(folder, method, result or {})
     names = _listed(folder)
     if names is not None:
         return names
@@ -117,4 +132,63 @@ def figures(folder: Path, method: str, result: dict) -> list[str]:
     return names
 
 
-__all__ = ["FIGURES", "FIGURE_DATA", "figures", "load_figure_data", "save_figure_data"]
+def _draw_shown(method: str, summary: dict) -> bytes | None:
+    """The PNG of the shown per-object values (None when no object's cell is shown)."""
+    objs = [(o, c) for o, c in (summary.get("objects") or {}).items() if c.get("step") is not None]
+    keys = [k for k in SHOWN_METRICS if any(c.get(k) is not None for _, c in objs)]
+    if not objs or not keys:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 0.9 + 0.42 * len(objs) * len(keys) ** 0.5), dpi=110)
+    h = 0.8 / len(keys)
+    for j, k in enumerate(keys):
+        ys = [i + (j - (len(keys) - 1) / 2) * h for i in range(len(objs))]
+        vals = [100 * (c.get(k) or 0.0) for _, c in objs]
+        err = [50 * c["step"] for _, c in objs]  # half a step each way: what the rounding leaves open
+        ax.barh(ys, vals, height=h * 0.9, xerr=err, label=SHOWN_METRICS[k], capsize=2)
+    ax.set_yticks(range(len(objs)), [summary.get("names", {}).get(o, o) for o, _ in objs])
+    ax.invert_yaxis()
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("accuracy (%), as shown: each to its step (bars: +- half a step)")
+    ax.set_title(method[:60].replace("$", r"\$") + " - per object (test part)")
+    ax.grid(alpha=0.3, axis="x")
+    ax.legend(loc="lower right", fontsize=8)
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def shown_figures(folder: Path, method: str, result: dict) -> list[str]:
+    """A test part's figures in ``folder``: :data:`SHOWN_FIGURE`, drawn (once, cached under
+    :data:`SHOWN_FIGURES`) from ``result`` as disclosed and nothing else; [] when it shows no object."""
+    folder = Path(folder)
+    names = _listed(folder, SHOWN_FIGURES)
+    if names is not None:
+        return names
+    summary = dict((result or {}).get("summary") or {})
+    summary["names"] = (result or {}).get("object_names") or {}
+    with _DRAW:
+        names = _listed(folder, SHOWN_FIGURES)
+        if names is not None:
+            return names
+        try:
+            png = _draw_shown(method, summary)
+            names = [] if png is None else [SHOWN_FIGURE]
+            if png is not None:
+                atomic_write_bytes(folder / SHOWN_FIGURE, png)
+            if folder.is_dir():
+                atomic_write_bytes(folder / SHOWN_FIGURES, json.dumps(names).encode())
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"server: figures of {folder.name}: {type(e).__name__}: {e}", file=sys.stderr)
+            return []
+    return names
+
+
+__all__ = ["FIGURES", "FIGURE_DATA", "SHOWN_FIGURE", "SHOWN_FIGURES", "figures", "load_figure_data",
+           "save_figure_data", "shown_figures"]

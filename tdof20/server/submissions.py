@@ -17,6 +17,7 @@ from tdof20.errors import TdofError
 from tdof20.server.check import check_file
 from tdof20.server.config import MAX_UPLOADS, RESERVE_S
 from tdof20.server.db import jobs, submissions, users
+from tdof20.server.disclosure import disclose, server_key
 from tdof20.server.facts import DatasetFacts
 from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store, Stored
 
@@ -217,16 +218,16 @@ def _disk_full(e: BaseException) -> bool:
     return False
 
 
-def _row_dict(r, owner: bool) -> dict:
+def _row_dict(r, owner: bool, key: bytes) -> dict:
     d = {k: r._mapping[k] for k in ("uid", "method", "split", "part", "description", "authors", "hardware",
                                     "time_per_image", "training_data", "public", "status", "created", "scored")}
     d["user"] = r.user
     if owner:
         d.update(filename=r.filename, n_rows=r.n_rows, size=r.size, sha256=r.sha256, error=r.error,
                  stage=r.stage, attempts=r.attempts)
-    d["result"] = json.loads(r.result) if r.result and r.status == "done" else None
-    if d["result"] is not None and r.part != "val":
-        d["result"].pop("per_image", None)  # (a test result never has any: a second guard)
+    stored = json.loads(r.result) if r.result and r.status == "done" else None
+    # the one point where a result leaves the server: what the disclosure rule lets it show
+    d["result"] = disclose(stored, r.part, key, r.uid)
     return d
 
 
@@ -244,13 +245,14 @@ def get(engine: Engine, uid: str, viewer: dict | None) -> dict:
     owner = r is not None and viewer is not None and r.user_id == viewer["id"]
     if r is None or not (owner or (r.public and r.status != "withdrawn")):
         raise Refused(404, "no such submission")
-    return _row_dict(r, owner)
+    return _row_dict(r, owner, server_key(engine))
 
 
 def mine(engine: Engine, user: dict) -> list[dict]:
+    key = server_key(engine)
     with engine.begin() as c:
         rows = c.execute(_query().where(submissions.c.user_id == user["id"]).order_by(submissions.c.id.desc()))
-        return [_row_dict(r, True) for r in rows]
+        return [_row_dict(r, True, key) for r in rows]
 
 
 def withdraw(engine: Engine, uid: str, user: dict) -> dict:
@@ -267,16 +269,21 @@ def withdraw(engine: Engine, uid: str, user: dict) -> dict:
 
 def leaderboard(engine: Engine, split: str, metric: str = "add_s") -> list[dict]:
     """The public, scored submissions on a protocol's test part, best first by the mean over objects
-    of ``metric`` (validation submissions are not ranked)."""
+    of ``metric`` as the disclosure rule shows it (validation submissions are not ranked): equal
+    shown scores keep the order they were submitted in, so a rank tells nothing finer than a score."""
     if metric not in LEADERBOARD_METRICS:
         raise Refused(400, f"metric must be one of {', '.join(LEADERBOARD_METRICS)}")
+    key = server_key(engine)
     with engine.begin() as c:
         rows = c.execute(_query().where(and_(submissions.c.split == split, submissions.c.part == "test",
                                              submissions.c.public.is_(True),
                                              submissions.c.status == "done")))
-        out = [_row_dict(r, False) for r in rows]
+        out = [_row_dict(r, False, key) for r in rows]
     for d in out:
-        d["score"] = d["result"]["summary"]["mean"].get(metric) if d["result"] else None
+        mean = (d["result"] or {}).get("summary", {}).get("mean") or {}
+        d["score"] = mean.get(metric)
+        d["score_step"] = mean.get("step")
+        d["score_withheld"] = mean.get("withheld")
     out.sort(key=lambda d: (d["score"] is None, -(d["score"] or 0.0), d["created"]))
     return out
 
