@@ -37,7 +37,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from tdof20.errors import TdofError
-from tdof20.formats.io import atomic_write_bytes, read_text
+from tdof20.formats.io import atomic_write_bytes, read_bytes
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 FIELDS = HEADER.split(",")
@@ -179,6 +179,7 @@ def iter_rows(path: str | Path, part_bytes: int = STREAM_BYTES):
     import codecs
 
     path = Path(path)
+    read_bytes(path, "results file", limit=0)  # (the checked readers' one-line errors: missing, a folder, ...)
     dec = codecs.getincrementaldecoder("utf-8-sig")()
     try:
         f = open(path, "rb")

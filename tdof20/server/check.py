@@ -1,5 +1,5 @@
 """The strict checks of an uploaded results file, streamed: the file is read part by part
-(:func:`tdof20.dataset.results.iter_rows`, about 1 MiB of text at a time), each part gets the
+(:func:`tdof20.dataset.results.iter_rows`, 256 KiB of text at a time), each part gets the
 reader's row checks and the dataset's id checks, and what spans parts is kept small — an 8-byte
 digest and the line of each row (duplicates), |t| of each row (the metres check's median), one time
 per image of the dataset (one time per image). Memory: about 24 bytes a row beyond one part, so a
@@ -18,6 +18,9 @@ import numpy as np
 from tdof20.dataset.results import METRES_RATIO, check_against_dataset, check_rows, iter_rows
 from tdof20.errors import TdofError
 from tdof20.server.facts import DatasetFacts
+
+
+PART_BYTES = 256 * 1024  # text parsed at once (~1,000 rows: a few MB of Python objects at the peak)
 
 
 @dataclass
@@ -49,7 +52,7 @@ def check_file(path: Path, facts: DatasetFacts, split: str) -> Checked:
     first_small = None  # (line, |t|) of the first row whose |t| could be metres
     gt = facts.train_distance_mm
     n = 0
-    for part in iter_rows(path):
+    for part in iter_rows(path, PART_BYTES):
         if not len(part):
             continue
         check_rows(part)

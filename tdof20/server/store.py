@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 CHUNK = 1 << 20
+SLICE = 64 * 1024  # bytes checked and written at once (the line check splits them: a bounded copy)
 FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # no room: the disk, a quota, a file size limit
 FULL = "the server's disk is full: the submission was not stored; try later"
 
@@ -104,7 +105,11 @@ class Upload:
         except OSError as e:
             raise _full(e) from None
 
-    def write(self, chunk: bytes) -> None:
+    def write(self, data: bytes) -> None:
+        for i in range(0, len(data), SLICE):  # (a server may hand over megabytes at once)
+            self._write(data[i:i + SLICE])
+
+    def _write(self, chunk: bytes) -> None:
         self.size += len(chunk)
         if self.size > self.max_bytes:
             raise Refused(413, f"the file is larger than the limit of {self.max_bytes} bytes")

@@ -16,6 +16,7 @@ from tdof20.server.store import Refused, Store, Stored, Upload
 
 FIELD_BYTES = 16 * 1024  # a text field (the longest, description, is 4,000 characters)
 MAX_FIELDS = 32
+FEED = 256 * 1024  # bytes given to the parser at once
 
 
 @dataclass
@@ -92,8 +93,9 @@ async def read_form(request: Request, store: Store, max_bytes: int, max_line: in
         "on_header_field": on_header_field, "on_header_value": on_header_value, "on_header_end": on_header_end,
         "on_headers_finished": on_headers_finished})
     try:
-        async for chunk in request.stream():
-            parser.write(chunk)
+        async for data in request.stream():
+            for i in range(0, len(data), FEED):  # (uvicorn may hand over megabytes at once)
+                parser.write(data[i:i + FEED])
             if state.get("ended") is not None:
                 up, state["ended"] = state["ended"], None
                 state["upload"] = up  # (dropped with the form if syncing fails)
