@@ -107,7 +107,7 @@ def main() -> None:
         csv.write_bytes(results(root, 4.0, 9.0, 0.03))
     print(f"results file: {csv.stat().st_size / 1e6:.1f} MB, {csv.read_text().count(chr(10)) - 1} rows")
     data = Path(tmp.name) / "data"
-    with LiveServer(root, data, "--daily-limit", "100000") as live:
+    with LiveServer(root, data, "--daily-limit", "100000", "--max-uploads", "8") as live:
         db = ServerConfig(dataset=root, data=data).db_url
         headers = {"Authorization": f"Bearer {live.tokens['alice']}"}
         t = time.perf_counter()
