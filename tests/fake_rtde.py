@@ -69,6 +69,13 @@ class FakeURController:
         self.calls: list[str] = []
         self.reconnects = 0
         self.stops = 0
+        self.t0 = time.monotonic()
+        self.frozen = False               # the timestamp stands still (a frozen data stream)
+        self.program_running = not (self.protective_stopped or self.emergency_stopped)
+        self.op_id = 0
+        self.op_running = False
+        self.qd = np.zeros(6)
+        self.reuploads = 0
         self._never = threading.Event()   # never set while a test runs: a constructor that hangs
         self._stop_motion = threading.Event()
         self._dropped = False
@@ -99,10 +106,26 @@ class FakeURController:
             T = ur5_fk(self.q)
         return [*(T[:3, 3] / 1000.0).tolist(), *Rotation.from_matrix(T[:3, :3]).as_rotvec().tolist()]
 
+    def timestamp(self) -> float:
+        """Controller time: advances in 8 ms packages unless frozen."""
+        if self.frozen:
+            return getattr(self, "_frozen_at", 0.0)
+        self._frozen_at = round((time.monotonic() - self.t0) / 0.008) * 0.008
+        return self._frozen_at
+
+    def safety_status_bits(self) -> int:
+        bits = 1 if self.safety_mode == 1 else (2 if self.safety_mode == 2 else 0)
+        if self.protective_stopped:
+            bits |= 1 << 2
+        if self.emergency_stopped:
+            bits |= (1 << 6) | (1 << 7)
+        return bits
+
     def trigger_protective_stop(self) -> None:
         with self.lock:
             self.protective_stopped = True
             self.safety_mode = 3
+            self.program_running = False
             self._stop_motion.set()
 
     def trigger_emergency_stop(self) -> None:
@@ -110,6 +133,7 @@ class FakeURController:
             self.emergency_stopped = True
             self.safety_mode = 7
             self.robot_mode = 3
+            self.program_running = False
             self._stop_motion.set()
 
     def drop(self, for_good: bool = False) -> None:
@@ -129,16 +153,39 @@ class FakeURController:
     def move(self, q, speed, acceleration, asynchronous) -> bool:
         with self.lock:
             self.moveJ_calls.append((list(q), speed, acceleration, asynchronous))
-            if not self.connected or self.protective_stopped or self.emergency_stopped:
+            if not self.connected or self.protective_stopped or self.emergency_stopped or not self.program_running:
                 return False
             if self.moveJ_returns_false:
                 return False
-            q0 = self.q.copy()
             self._stop_motion.clear()
+        if not asynchronous:
+            return self._motion(q)
+        with self.lock:
+            self.op_id = (self.op_id + 1) % 128
+            self.op_running = True
+
+        def run():
+            try:
+                self._motion(q)
+            except RuntimeError:
+                pass
+            finally:
+                with self.lock:
+                    self.op_running = False
+                    self.qd = np.zeros(6)
+
+        threading.Thread(target=run, daemon=True).start()
+        return True
+
+    def _motion(self, q) -> bool:
+        with self.lock:
+            q0 = self.q.copy()
         target = np.asarray(q, dtype=float)
+        self.qd = (target - q0) / self.motion_time_s
         n = max(2, int(self.motion_time_s / 0.005))
         for i in range(1, n + 1):
             if self._stop_motion.wait(self.motion_time_s / n):
+                self.qd = np.zeros(6)
                 return False
             with self.lock:
                 self.q = q0 + (target - q0) * (i / n)
@@ -160,6 +207,7 @@ class FakeURController:
                         raise RuntimeError("ur_rtde: lost the connection to the controller")
         with self.lock:
             self.q = target + self.arrive_offset
+            self.qd = np.zeros(6)
         return True
 
 
@@ -214,6 +262,7 @@ class FakeRTDEControl(_FakeInterface):
         if self._c.raise_on_stop:
             raise RuntimeError("fake: stopJ failed")
         self._c._stop_motion.set()
+        time.sleep(0.01)
 
     def stopScript(self) -> None:
         self._log("stopScript")
@@ -224,7 +273,14 @@ class FakeRTDEControl(_FakeInterface):
         return True
 
     def isProgramRunning(self) -> bool:
-        return self._c.connected and not (self._c.protective_stopped or self._c.emergency_stopped)
+        return self._c.connected and self._c.program_running
+
+    def reuploadScript(self) -> bool:
+        self._log("reuploadScript")
+        c = self._c
+        c.reuploads += 1
+        c.program_running = c.safety_mode in (1, 2) and c.robot_mode == 7
+        return True
 
     def isJointsWithinSafetyLimits(self, q) -> bool:
         return len(q) == 6 and all(abs(v) <= 2 * np.pi for v in q)
@@ -233,7 +289,23 @@ class FakeRTDEControl(_FakeInterface):
         return list(self._c.tcp_offset)
 
     def getAsyncOperationProgress(self) -> int:
-        return -1
+        return 0 if self._c.op_running else -1
+
+    def getAsyncOperationProgressEx(self) -> "FakeAsyncStatus":
+        return FakeAsyncStatus(self._c.op_id, self._c.op_running)
+
+
+class FakeAsyncStatus:
+    """Fake ``rtde_control.AsyncOperationStatus``."""
+
+    def __init__(self, op_id: int, running: bool):
+        self._id, self._running = op_id, running
+
+    def operationId(self) -> int:
+        return self._id
+
+    def isAsyncOperationRunning(self) -> bool:
+        return self._running
 
 
 class FakeRTDEReceive(_FakeInterface):
@@ -245,9 +317,22 @@ class FakeRTDEReceive(_FakeInterface):
                  rt_priority=0, *, controller: FakeURController):
         super().__init__(hostname, frequency, controller)
 
+    def getTimestamp(self) -> float:
+        return self._c.timestamp()
+
     def getActualQ(self) -> list[float]:
         with self._c.lock:
             return self._c.q.tolist()
+
+    def getActualQd(self) -> list[float]:
+        with self._c.lock:
+            return self._c.qd.tolist()
+
+    def getSafetyStatusBits(self) -> int:
+        return self._c.safety_status_bits()
+
+    def getRuntimeState(self) -> int:
+        return 2 if self._c.program_running else 1
 
     def getActualTCPPose(self) -> list[float]:
         return self._c.tcp_pose()

@@ -57,7 +57,7 @@ def test_connect_move_state_round_trip(make):
     st = robot.state()
     np.testing.assert_allclose(st.q, UR5_HOME)
     robot.move_joints(Q1, speed=0.5, acceleration=1.0, timeout_s=5.0)
-    assert ctl.moveJ_calls == [(Q1.tolist(), 0.5, 1.0, False)]
+    assert ctl.moveJ_calls == [(Q1.tolist(), 0.5, 1.0, True)]   # asynchronous: watched, stoppable
     assert isinstance(ctl.moveJ_calls[0][0], list)
     st = robot.state()
     assert st.q.shape == (6,) and st.T_base_tcp.shape == (4, 4)
@@ -162,8 +162,9 @@ def test_within_tolerance_is_fine(make):
 
 def test_moveJ_returns_false(make):
     ctl, robot = make(moveJ_returns_false=True)
-    with pytest.raises(SafetyStop, match="moveJ returned False"):
+    with pytest.raises(HardwareError, match="did not take the move .moveJ returned False") as ei:
         robot.move_joints(Q1, 0.5, 1.0, 5.0)
+    assert not isinstance(ei.value, SafetyStop)
 
 
 def test_move_timeout_stops_the_arm(make):
@@ -301,9 +302,9 @@ def test_preflight_runs_before_the_constructors():
     srv, conns = _server(reply=False)
     ctl = FakeURController()
     robot = URRobot("127.0.0.1", connect_timeout_s=0.3, control_factory=ctl.control, receive_factory=ctl.receive,
-                    preflight=True, rtde_port=srv.getsockname()[1])
+                    preflight=True, rtde_port=srv.getsockname()[1], dashboard_port=srv.getsockname()[1])
     try:
-        with pytest.raises(HardwareError, match="127.0.0.1.*did not answer"):
+        with pytest.raises(HardwareError, match="127.0.0.1.*did not answer on its dashboard port"):
             robot.connect()
         assert ctl.constructed == []
     finally:

@@ -44,6 +44,7 @@ ur_rtde binds fixed ports, so one emulator at a time per machine: tests using it
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import socket
@@ -222,9 +223,11 @@ class URControllerEmulator:
     """A UR5 (CB3, PolyScope 3.15.7) on 127.0.0.1: start(), then connect ur_rtde to 127.0.0.1."""
 
     def __init__(self, q0=None, *, robot_mode: int = RUNNING, safety_mode: int = NORMAL, silent: bool = False,
-                 version: tuple[int, int, int, int] = (3, 15, 7, 106331), host: str = HOST):
+                 version: tuple[int, int, int, int] = (3, 15, 7, 106331), host: str = HOST,
+                 unlock_delay_s: float = UNLOCK_DELAY_S):
         self.host = host
-        self.version = version
+        self.version = tuple(version)
+        self.unlock_delay_s = float(unlock_delay_s)
         self.lock = threading.RLock()
         self.q = np.array(DEFAULT_Q0 if q0 is None else q0, dtype=float)
         self.qd = np.zeros(6)
@@ -391,7 +394,12 @@ class URControllerEmulator:
 
     def _physics(self, dt: float) -> None:
         m = self._motion
-        if m is None or self.stalled:
+        if m is not None and self.stalled:      # the joints do not move: a stop is over at once
+            self.qd = np.zeros(6)
+            if m.stopping:
+                self._motion = None
+            return
+        if m is None:
             self.qd = np.zeros(6)
             return
         m.step(dt)
@@ -775,7 +783,7 @@ class URControllerEmulator:
             if low == "unlock protective stop":
                 if self.safety_mode != PROTECTIVE_STOP:
                     return "Protective stop releasing"
-                if self.stop_time is not None and self.timestamp - self.stop_time < UNLOCK_DELAY_S:
+                if self.stop_time is not None and self.timestamp - self.stop_time < self.unlock_delay_s:
                     return ("Cannot unlock protective stop until 5s after occurrence. Always inspect cause of "
                             "protective stop before unlocking")
                 self.safety_mode = NORMAL
@@ -790,11 +798,10 @@ class URControllerEmulator:
                 self.safety_mode = NORMAL
                 self.robot_mode = POWER_OFF
                 return "Restarting safety"
-            if low == "stop":
+            if low == "stop":           # PolyScope answers so whether or not a program ran
                 if self.runtime_state == PLAYING:
                     self._halt_program(dec=4.0)
-                    return "Stopped"
-                return "Failed to execute: stop"
+                return "Stopped"
             if low == "quit":
                 return "Disconnected"
         return f"could not understand: '{cmd.strip()}'"
@@ -852,8 +859,9 @@ class EmulatedController:
         port = self._listener.address[1]
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.path.dirname(__file__),
                                                                       os.environ.get("PYTHONPATH")) if p))
-        self._proc = subprocess.Popen([sys.executable, __file__, str(port), key.hex(), repr(options)], env=env)
-        self._listener._listener._socket.settimeout(20.0)
+        self._proc = subprocess.Popen([sys.executable, __file__, str(port), key.hex(),
+                                       json.dumps(options, default=lambda x: np.asarray(x).tolist())], env=env)
+        self._listener._listener._socket.settimeout(15.0)
         try:
             self._conn = self._listener.accept()
         except Exception:
@@ -979,7 +987,6 @@ def _serve(port: int, key: bytes, options: dict) -> None:
 
 
 if __name__ == "__main__":
-    import ast
     import sys
 
-    _serve(int(sys.argv[1]), bytes.fromhex(sys.argv[2]), ast.literal_eval(sys.argv[3]))
+    _serve(int(sys.argv[1]), bytes.fromhex(sys.argv[2]), json.loads(sys.argv[3]))

@@ -167,8 +167,16 @@ class _Runner:
                 if self.yes:
                     raise
                 console.print(f"[bold yellow]paused:[/bold yellow] {escape(str(e))}")
-                self.prompt("Clear the stop on the teach pendant, then press Enter to go on (Ctrl-C stops) ")
-                self.rig.robot.check_safety()
+                for ask in range(3):
+                    self.prompt("Clear the stop on the teach pendant, then press Enter to go on (Ctrl-C stops) ")
+                    try:
+                        self.rig.robot.resume()  # unlock, restart the robot's program where the backend can
+                        break
+                    except SafetyStop as still:
+                        self.log.warning("%s: %s", what, still)
+                        if ask == 2:
+                            raise
+                        console.print(f"[bold yellow]still stopped:[/bold yellow] {escape(str(still))}")
                 self.summary.warnings.append(f"safety stop during {what}, cleared by the operator")
             except HardwareError as e:
                 n += 1

@@ -121,6 +121,12 @@ class Robot(abc.ABC):
     def stop(self) -> None:
         """Stop any motion now (best effort, never raises)."""
 
+    def resume(self) -> None:
+        """After a person cleared a safety stop: make the robot ready to move again (a backend may
+        unlock the stop, restart its program ...), or raise SafetyStop saying what still stops it.
+        The default only checks the safety state."""
+        self.check_safety()
+
 
 class Turntable(abc.ABC):
     """A motorised turntable with absolute positioning in degrees (counter-clockwise from above)."""
