@@ -211,3 +211,54 @@ def test_a_network_drop_between_calls_is_survived(rig):
     np.testing.assert_array_equal(robot.state().q, POSITIONS[0])
     robot.move_joints(POSITIONS[1], speed=3.0, acceleration=20.0, timeout_s=5.0)
     np.testing.assert_array_equal(robot.state().q, POSITIONS[1])
+
+
+def test_a_capture_session_resumes_across_a_protective_stop(rig, tmp_path):
+    """A bump during the second arm move: the run pauses, the operator presses Enter, the backend
+    unlocks the stop and restarts the script, the move is taken again and every frame is there."""
+    from tdof20.capture import config_from_dict, run_capture, verify_session
+    from tdof20.capture.hardware.interfaces import RGBDCamera, RGBDFrame, Turntable
+    from tdof20.capture.rig import Rig
+    from tdof20.sim.rig import RigLayout
+
+    class Table(Turntable):
+        name = "test table"
+        a = 0.0
+
+        def connect(self): pass
+        def close(self): pass
+        def home(self, timeout_s): self.a = 0.0
+        def move_to(self, angle_deg, timeout_s):
+            self.a = angle_deg
+            return angle_deg
+        def angle(self): return self.a
+
+    class Camera(RGBDCamera):
+        name = "test camera"
+
+        def connect(self): pass
+        def close(self): pass
+        def intrinsics(self):
+            return {"K": [60.0, 0, 31.5, 0, 60.0, 23.5, 0, 0, 1], "width": 64, "height": 48, "depth_scale": 1.0}
+        def grab(self, timeout_s):
+            t = time.time()
+            return RGBDFrame(np.zeros((48, 64, 3), np.uint8), np.full((48, 64), 500, np.uint16), t, t)
+
+    emu, robot = rig(connect=False, unlock_delay_s=1.0)
+    cfg = config_from_dict({
+        "session": {"scene_id": "multi/08", "objects": [3, 7, 12]},
+        "hand_eye": {"T_tcp_cam": list(np.asarray(RigLayout().T_tcp_cam).reshape(-1))},
+        "robot": {"backend": "ur_rtde", "host": HOST, "positions": [q.tolist() for q in POSITIONS[:2]],
+                  "speed": 3.0, "acceleration": 20.0, "move_timeout_s": 10.0},
+        "turntable": {"backend": "grbl", "port": "unused", "steps": 2, "step_deg": 90.0},
+        "camera": {"backend": "oakd", "width": 64, "height": 48},
+    }, "rig.toml")
+    _after(emu, "sum(1 for _, c in e.commands if c == 1) >= 2 and e.leading_speed() > 0.2", "protective_stop")
+    prompts = []
+    summary = run_capture(cfg, tmp_path / "s", prompt=lambda m: prompts.append(m) or "", show_progress=False,
+                          rig=Rig(robot=robot, turntable=Table(), camera=Camera()))
+    assert summary.complete and summary.captured == summary.planned == 8
+    assert any("safety stop during moveJ to arm position" in w for w in summary.warnings)
+    assert any("Clear the stop" in p for p in prompts)
+    assert len(emu.get("scripts")) == 2                      # the control script was uploaded again
+    assert verify_session(tmp_path / "s") == []
