@@ -19,6 +19,8 @@ double-submit cookie). Every refusal is one line: JSON ``{"detail": "..."}`` fro
 
 from __future__ import annotations
 
+import math
+import sys
 from pathlib import Path
 
 from fastapi import Depends, FastAPI, Form, Request
@@ -34,6 +36,7 @@ from tdof20.server.config import ServerConfig
 from tdof20.server.db import init_db, make_engine
 from tdof20.server.facts import DatasetFacts
 from tdof20.server.figures import figures
+from tdof20.server.publish import DERIVABLE, derivable, hidden_frames
 from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
 from tdof20.server.upload import read_form
 
@@ -135,6 +138,32 @@ class SecurityHeaders:
         await self.app(scope, receive, with_headers)
 
 
+class Limited(Refused):
+    """A client over its failure limit: 429, one line, and ``Retry-After`` (seconds)."""
+
+    def __init__(self, message: str, retry_after: float):
+        super().__init__(429, message)
+        self.retry_after = max(1, math.ceil(retry_after))
+
+
+def client_key(request: Request) -> str:
+    """The address a failure is counted against (the peer: a proxy in front passes its own)."""
+    return request.client.host if request.client is not None else "?"
+
+
+def derivable_notes(root: Path) -> dict[str, str]:
+    """Per protocol whose test labels are derivable from public images (publish.json's rule:
+    :func:`tdof20.server.publish.derivable`), the reason to print on its leaderboard; computed
+    once at server start. A dataset whose layout publish does not know gives none."""
+    try:
+        facts = derivable(root, hidden_frames(root))
+    except Exception as e:  # noqa: BLE001 (a layout publish cannot read: no note, said on stderr)
+        print(f"server: whether test labels are derivable from public images: {type(e).__name__}: {e}",
+              file=sys.stderr)
+        return {}
+    return {s: str(f.get("why", "")) for s, f in facts.items() if f.get(DERIVABLE)}
+
+
 def one_line(errors) -> str:
     """FastAPI's list of validation errors as one line: ``method: field required; split: ...``."""
     out = []
@@ -172,6 +201,9 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     subs.sweep_reservations(engine)
     facts = DatasetFacts(cfg.dataset)
     templates = Jinja2Templates(directory=str(TEMPLATES))
+    notes = derivable_notes(Path(cfg.dataset))
+    signin_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
+    token_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
     app = FastAPI(title="tdof20 benchmark server", version="1", docs_url=None, redoc_url=None)
     app.state.engine = engine
 
@@ -193,6 +225,8 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     @app.exception_handler(Refused)
     async def _refused(request: Request, e: Refused):
         headers = {"Connection": "close"} if getattr(request.state, "unread", False) else {}
+        if isinstance(e, Limited):
+            headers["Retry-After"] = str(e.retry_after)
         if request.url.path.startswith("/api/"):
             if e.status == 401:
                 headers["WWW-Authenticate"] = "Bearer"
@@ -205,9 +239,14 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         header = request.headers.get("authorization", "")
         if not header:
             raise Refused(401, "missing token: send 'Authorization: Bearer TOKEN'")
+        client = client_key(request)
+        wait = token_failures.retry_after(client)
+        if wait > 0:  # before the token is checked: guessing costs the guesser, not argon2's time
+            raise Limited(f"too many refused tokens from your address: try again in {math.ceil(wait)} s", wait)
         scheme, _, token = header.partition(" ")
         user = auth.authenticate(engine, token.strip()) if scheme.lower() == "bearer" else None
         if user is None:
+            token_failures.failed(client)
             raise Refused(401, "invalid or revoked token")
         return user
 
@@ -310,7 +349,8 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         split = split if split in facts.splits else facts.splits[0]
         rows = subs.leaderboard(engine, split, metric)
         return page(request, "leaderboard.html", {"rows": rows, "split": split, "metric": metric,
-                                                  "metrics": subs.LEADERBOARD_METRICS})
+                                                  "metrics": subs.LEADERBOARD_METRICS,
+                                                  "derivable": notes.get(split)})
 
     @app.get("/signin", response_class=HTMLResponse, include_in_schema=False)
     def signin_form(request: Request):
@@ -323,8 +363,13 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     def signin(request: Request, name: str = Form(...), token: str = Form(...), csrf: str = Form("")):
         if not auth.same_token(request.cookies.get(SIGNIN_COOKIE), csrf):
             raise Refused(403, "the form's CSRF token is missing or wrong: reload the page")
+        client = client_key(request)
+        wait = signin_failures.retry_after(client)
+        if wait > 0:
+            raise Limited(f"too many failed sign-ins from your address: try again in {math.ceil(wait)} s", wait)
         user = auth.authenticate(engine, token.strip())
         if user is None or user["name"] != name:
+            signin_failures.failed(client)
             raise Refused(401, "wrong name or token")
         resp = RedirectResponse("/mine", status_code=303)
         resp.set_cookie(SESSION_COOKIE, auth.create_session(engine, user["id"]), httponly=True, samesite="lax",

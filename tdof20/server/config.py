@@ -11,6 +11,8 @@ MAX_LINE_BYTES = 4096  # a results row is ~300 bytes
 DAILY_LIMIT = 5  # submissions per user per 24 hours (failed by the server or withdrawn before scoring: not counted)
 MAX_UPLOADS = 2  # uploads of one user in progress at once
 RESERVE_S = 3600.0  # an upload's reserved slot lapses this long after it began (a server killed mid-upload)
+MAX_FAILURES = 10  # failed sign-ins (and, apart, refused API tokens) per client address within FAILURE_WINDOW_S
+FAILURE_WINDOW_S = 900.0
 LEASE_S = 60.0  # a worker's claim on a job lasts this long unless renewed
 
 
@@ -28,10 +30,12 @@ class ServerConfig:
     max_uploads: int = MAX_UPLOADS
     lease_s: float = LEASE_S
     secure_cookies: bool = False  # set behind HTTPS
+    max_failures: int = MAX_FAILURES
+    failure_window_s: float = FAILURE_WINDOW_S
 
     @property
     def db_url(self) -> str:
         return self.db or f"sqlite:///{Path(self.data).resolve() / 'server.db'}"
 
 
-__all__ = ["DAILY_LIMIT", "LEASE_S", "MAX_LINE_BYTES", "MAX_UPLOADS", "MAX_UPLOAD_BYTES", "RESERVE_S", "ServerConfig"]
+__all__ = ["DAILY_LIMIT", "FAILURE_WINDOW_S", "LEASE_S", "MAX_FAILURES", "MAX_LINE_BYTES", "MAX_UPLOADS", "MAX_UPLOAD_BYTES", "RESERVE_S", "ServerConfig"]
