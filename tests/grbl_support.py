@@ -1,5 +1,11 @@
 """What the GRBL tests share: emulators on real pseudo-terminals (stopped after each test) and a
-driver connected to one, with the tests' speeds (faster than a real table's, same ratios)."""
+driver connected to one, with the tests' speeds (faster than a real table's, same ratios).
+
+The emulator's defaults are the firmware's (no reset when the port opens, the homing lock at
+power-up with ``$22=1``, Z-then-XY homing at GRBL's own rates: 5-11 s); the fixture only makes the
+homing cycle fast (``FAST_HOMING``: seek and locate at 100 and 50 units/s, 10 ms of debounce, about
+0.35 s for both cycles) and starts the controller unlocked (``start_alarm=None``, as after a ``$X``
+or a homing before the test) unless a test asks for the power-up lock."""
 
 from __future__ import annotations
 
@@ -10,6 +16,8 @@ from tdof20.capture.hardware.grbl_emulator import GrblEmulator
 
 SPEED = 360.0          # emulator max rate, units/s
 ACCEL = 3600.0         # emulator acceleration, units/s² (GRBL's own default ratio would be 432)
+FAST_HOMING = {24: 3000.0, 25: 6000.0, 26: 10}     # $24 locate, $25 seek (units/min), $26 debounce (ms)
+SLOW_HOMING = {24: 60.0, 25: 600.0, 26: 10}        # locate at 1 unit/s: about 1.4 s per cycle, 2.9 s for both
 
 
 @pytest.fixture
@@ -19,7 +27,8 @@ def emu_factory():
     def make(**kw) -> GrblEmulator:
         kw.setdefault("speed_units_per_s", SPEED)
         kw.setdefault("accel_units_per_s2", ACCEL)
-        kw.setdefault("homing_s", 0.1)
+        kw.setdefault("start_alarm", None)
+        kw["settings"] = {**FAST_HOMING, **kw.get("settings", {})}
         emu = GrblEmulator(**kw).start()
         made.append(emu)
         return emu

@@ -10,6 +10,7 @@ import pytest
 from tdof20.capture import config_from_dict, run_capture, verify_session
 from tdof20.capture.hardware.grbl import GrblTurntable
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
+from tests.grbl_support import FAST_HOMING
 from tdof20.capture.hardware.interfaces import RGBDCamera, RGBDFrame
 from tdof20.capture.hardware.ur import URRobot
 from tdof20.capture.rig import Rig
@@ -59,11 +60,13 @@ def hardware_config(steps=4):
 
 @pytest.fixture
 def devices():
-    emu = GrblEmulator(speed_units_per_s=3600.0)
+    # GRBL as it powers up with homing on ($22=1): in the homing lock; the table built as build_rig
+    # builds it for [turntable] home = true (the runner homes it); a fast homing cycle for the test
+    emu = GrblEmulator(speed_units_per_s=3600.0, settings=FAST_HOMING)
     emu.start()
     ctl = FakeURController(motion_time_s=0.01)
     robot = URRobot("10.0.0.5", control_factory=ctl.control, receive_factory=ctl.receive, connect_timeout_s=2.0)
-    table = GrblTurntable(emu.port, timeout_s=3.0, feed_deg_per_s=3600.0)
+    table = GrblTurntable(emu.port, timeout_s=3.0, feed_deg_per_s=3600.0, home=True)
     yield emu, ctl, robot, table
     ctl.release()
     emu.stop()
@@ -120,14 +123,12 @@ def test_alarm_mid_run_stops_cleanly_and_resumes(tmp_path, devices):
     assert "ALARM" in msg and "resume with: tdof20 capture run rig.toml --out s" in msg
     kept = len(RawSession.open(tmp_path / "s").entries)
     assert 5 <= kept <= 6 and verify_session(tmp_path / "s")[0].startswith("missing frame")
-    # the operator clears the alarm (a soft reset) and runs the same command again
-    emu2 = GrblEmulator(speed_units_per_s=3600.0)
-    emu2.start()
-    try:
-        table2 = GrblTurntable(emu2.port, timeout_s=3.0, feed_deg_per_s=3600.0)
-        summary = run_capture(cfg, tmp_path / "s", yes=True, show_progress=False,
-                              rig=Rig(robot, table2, AngleCamera(table2)))
-        assert summary.present_before == kept and summary.captured == 16 - kept
-        assert verify_session(tmp_path / "s") == []
-    finally:
-        emu2.stop()
+    # the operator runs the same command again: the controller kept its ALARM:1 lock across the close
+    # and the open (no reset on open); the driver resets it (ctrl-x) at connect and the run homes it
+    assert emu.state == "Alarm"
+    table2 = GrblTurntable(emu.port, timeout_s=3.0, feed_deg_per_s=3600.0, home=True)
+    summary = run_capture(cfg, tmp_path / "s", yes=True, show_progress=False,
+                          rig=Rig(robot, table2, AngleCamera(table2)))
+    assert summary.present_before == kept and summary.captured == 16 - kept
+    assert verify_session(tmp_path / "s") == []
+    assert "$H" in emu.received and emu.state == "Idle"

@@ -11,7 +11,7 @@ from tdof20.capture.hardware.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, G
                                           describe_alarm, describe_error, parse_status)
 from tdof20.capture.hardware.grbl_timing import move_time
 from tdof20.capture.hardware.interfaces import HardwareError
-from tests.grbl_support import ACCEL, SPEED, emu_factory, table_for  # noqa: F401 (a fixture)
+from tests.grbl_support import ACCEL, SLOW_HOMING, SPEED, emu_factory, table_for  # noqa: F401 (a fixture)
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -77,7 +77,9 @@ def test_units_per_degree_scales_commands_and_reports(emu_factory):
 @pytest.mark.parametrize("code, words", [(1, "hard limit"), (9, "limit switch was not found"),
                                          (0, "homing required")])
 def test_alarm_at_start_is_reported_in_words_and_refuses_to_move(emu_factory, code, words):
-    emu = emu_factory(start_alarm=code)
+    # GRBL prints ALARM:N once, as it boots: only a board that resets when its port opens (DTR, an
+    # Arduino Uno) prints it to this host, and again at the second connect
+    emu = emu_factory(start_alarm=code, auto_reset=True)
     table = table_for(emu)
     with pytest.raises(GrblAlarm) as err:
         table.connect()
@@ -125,7 +127,7 @@ def test_alarm_mid_move_stops_the_move(emu_factory):
 
 
 def test_alarm_during_homing(emu_factory):
-    emu = emu_factory(homing_s=1.0)
+    emu = emu_factory(settings=SLOW_HOMING)
     table = table_for(emu)
     table.connect()
     try:
@@ -290,7 +292,7 @@ def test_move_that_does_not_finish_in_time_is_retryable(emu_factory):
 def test_emulator_speaks_grbl(emu_factory):
     import serial
 
-    emu = emu_factory()
+    emu = emu_factory(auto_reset=True)                # a board that resets on open: its banner comes
     with serial.Serial(emu.port, 115200, timeout=0.05) as ser:
         buf = bytearray()
 

@@ -15,7 +15,8 @@ from tdof20.capture.hardware.grbl import GrblAlarm, GrblTurntable, parse_status
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
 from tdof20.capture.hardware.grbl_timing import homing_worst_case_s, move_time
 from tdof20.capture.hardware.interfaces import HardwareError
-from tests.grbl_support import ACCEL, SPEED, emu_factory  # noqa: F401 (a fixture)
+from tdof20.capture.hardware.grbl_emulator import LimitSwitch
+from tests.grbl_support import ACCEL, SLOW_HOMING, SPEED, emu_factory  # noqa: F401 (a fixture)
 from tests.grbl_support import table_for as grbl_table_for
 
 pytestmark = pytest.mark.timeout(30)
@@ -28,8 +29,9 @@ table_for = functools.partial(grbl_table_for, timeout_s=3.0)  # alarms and reset
 
 
 def homing_fails(emu_factory) -> tuple[GrblEmulator, GrblTurntable]:
-    """A table whose homing switch is never found: $H ends in ALARM:9, then GRBL resets itself."""
-    emu = emu_factory(homing_s=None, switch_distance=None, settings=SHORT_SEARCH)
+    """A table whose homing switch is never found: $H homes Z, then ends in ALARM:9 searching X and Y
+    (no switch on X), then GRBL resets itself."""
+    emu = emu_factory(switches={"Y": 2.0, "Z": 2.0}, settings=SHORT_SEARCH)
     table = table_for(emu)
     table.connect()
     with pytest.raises(GrblAlarm) as err:
@@ -73,7 +75,7 @@ def test_g1_late_ok_after_homing_alarm_is_not_taken_for_the_next_answer(emu_fact
 
 def test_g1_stop_during_homing(emu_factory):
     """stop() from another thread during $H: the reset gives ALARM:6, the pause, the $H's ok, the banner."""
-    emu = emu_factory(homing_s=2.0)
+    emu = emu_factory(settings=SLOW_HOMING)
     table = table_for(emu)
     table.connect()
     try:
@@ -209,7 +211,8 @@ def test_g4_connect_to_a_controller_locked_by_a_soft_limit(emu_factory, home):
 
 def test_g5_homing_waits_for_grbls_own_bound(emu_factory):
     settings = {25: 600.0, 24: 600.0, 26: 10, 130: 20.0, 131: 20.0, 132: 20.0}
-    emu = emu_factory(homing_s=None, switch_distance=25.0, settings=settings)   # 25 units at 10 units/s
+    # the X home flag 25 units away (at 10 units/s), after the Z cycle
+    emu = emu_factory(switches={"X": LimitSwitch(25.0, 2.0, 360.0), "Y": 2.0, "Z": 2.0}, settings=settings)
     table = table_for(emu, timeout_s=1.0)
     table.connect()
     try:
@@ -224,9 +227,12 @@ def test_g5_homing_waits_for_grbls_own_bound(emu_factory):
 
 def test_g5_homing_past_the_bound_is_aborted_and_names_the_settings(emu_factory):
     settings = {25: 6000.0, 24: 6000.0, 26: 0, 27: 0.5, 130: 1.0, 131: 1.0, 132: 1.0}
-    emu = emu_factory(homing_s=6.0, settings=settings)  # a cycle far longer than its settings allow
+    emu = emu_factory(switches={"X": LimitSwitch(1.0, 2.0, 360.0), "Y": 1.0, "Z": 1.0}, settings=settings)
     table = table_for(emu, timeout_s=1.0)
     table.connect()
+    # the rates changed behind the driver's back after it read them (another sender on the port):
+    # the real cycle (about 5 s at 1 unit/s) outlives the bound the driver computed (about 2 s)
+    emu.settings.update({24: 60.0, 25: 60.0})
     try:
         t = time.monotonic()
         with pytest.raises(HardwareError) as err:
@@ -303,10 +309,9 @@ class Link:
 
 
 def test_emulator_reset_during_homing_pause_late_ok_banner(emu_factory):
-    emu = emu_factory(homing_s=1.0)
+    emu = emu_factory(settings=SLOW_HOMING)
     link = Link(emu.port)
     try:
-        link.lines(0.3)
         link.send(b"$H\n")
         time.sleep(0.1)
         link.send(b"?")
@@ -325,10 +330,9 @@ def test_emulator_reset_during_homing_pause_late_ok_banner(emu_factory):
 
 
 def test_emulator_homing_answers_one_report_at_its_end(emu_factory):
-    emu = emu_factory(homing_s=0.4)
+    emu = emu_factory()                               # FAST_HOMING: about 0.35 s
     link = Link(emu.port)
     try:
-        link.lines(0.3)
         link.send(b"$H\n")
         time.sleep(0.05)
         link.send(b"???")
@@ -401,7 +405,7 @@ def test_emulator_without_auto_reset_keeps_its_state_across_opens(emu_factory):
         assert parse_status(link.lines(0.5, lambda s: s.startswith("<"))[-1][1]).mpos[0] == 7.0
     finally:
         link.close()
-    emu2 = emu_factory()                              # an Arduino: opening resets it
+    emu2 = emu_factory(auto_reset=True)               # an Arduino: opening resets it
     link = Link(emu2.port)
     try:
         assert any(s.startswith("Grbl 1.1h") for _, s in link.lines(0.5, lambda s: s.startswith("Grbl")))

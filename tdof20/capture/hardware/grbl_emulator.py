@@ -6,15 +6,18 @@ tty that pyserial, a G-code sender (UGS, CNCjs, bCNC) or ``GrblTurntable`` opens
 
 What it does, after GRBL 1.1h (checked against the firmware compiled for the PC, grbl-sim):
 
-* Opening the port resets the "board" like an Arduino's DTR line: after ``boot_s`` (input is
-  ignored meanwhile, like a bootloader) it prints ``Grbl 1.1h ['$' for help]``, the machine
-  position is 0 and G92 offsets are gone. ``auto_reset=False``: a board without that reset (many
-  32-bit boards, a shield with the reset capacitor removed): it boots once at :meth:`start` and
-  keeps its state, alarm lock included, across the host's close and open. ``start_alarm``: ``None``
-  starts Idle; ``0`` starts in the power-up homing lock (``[MSG:'$H'|'$X' to unlock]``, as with
-  ``$22=1``); ``N`` in 1..9 also prints ``ALARM:N`` first (a controller that powers up with alarm N
-  pending, locked like the power-up lock). ``version="0.9j"``: the banner and the status reports
-  (``<Idle,MPos:…,WPos:…>``) of GRBL 0.9, still on many boards.
+* Opening the port does not reset the board (GRBL 1.1h and 0.9j on a board without an auto-reset
+  circuit, or a USB-serial adapter that leaves DTR alone): it booted once at :meth:`start` (its banner
+  went nowhere) and keeps its state across the host's close and open, alarm lock, machine position
+  and G92 offsets included. ``auto_reset=True``: a board that resets when the host opens the port
+  (DTR, like an Arduino Uno): after ``boot_s`` (input is ignored meanwhile, like a bootloader) it
+  prints ``Grbl 1.1h ['$' for help]``, the machine position is 0 and G92 offsets are gone.
+  ``start_alarm``: at power-up (default ``POWER_UP``) GRBL starts in the homing lock
+  (``[MSG:'$H'|'$X' to unlock]``, ``HOMING_INIT_LOCK``) when homing is enabled (``$22=1``), else Idle;
+  ``None`` starts Idle anyway (a controller unlocked or homed before the host came); ``0``: the
+  lock; ``N`` in 1..9 also prints ``ALARM:N`` first (a controller that powers up with alarm N
+  pending). ``version="0.9j"``: the banner and the status reports (``<Idle,MPos:…,WPos:…>``) of
+  GRBL 0.9, still on many boards.
 * Lines end with ``\\n`` or ``\\r`` (each ends a line; an empty line is answered ``ok``); comments
   and spaces are dropped. It answers ``ok`` / ``error:N`` like GRBL (the commands it knows:
   :mod:`tdof20.capture.hardware.grbl_emulator_commands`); G-code during an alarm gives ``error:9``.
@@ -24,12 +27,21 @@ What it does, after GRBL 1.1h (checked against the firmware compiled for the PC,
   block from rest to rest), then ``Idle``. ``speed_units_per_s`` sets the max rates,
   ``accel_units_per_s2`` the accelerations (default: the max rate reached in 0.83 s, the ratio of
   GRBL's own defaults 500 mm/min and 10 mm/s²).
-* Homing (``$H``, ``error:5`` if ``$22=0``): GRBL answers no ``?`` while it homes (one report
-  when it ends), then ``ok``; the machine position is ``-$27``. ``homing_s``: a cycle of that
-  fixed length; ``homing_s=None``: the cycle GRBL runs from the settings (search at ``$25`` over at
-  most 1.5 × ``$130``, pull-off ``$27``, locate at ``$24``, debounce ``$26``) towards a switch
-  ``switch_distance`` units from where the X axis stood at :meth:`start` (``None``: no switch, the
-  search ends in ``ALARM:9``). The physical position, and so the switch, survives resets.
+* Limit switches are inputs (:mod:`tdof20.capture.hardware.grbl_emulator_limits`): ``switches``
+  maps axes to :class:`LimitSwitch` (default: the turntable's home flag on X, limit switches on Y
+  and Z, each 2 units ahead of the start); the status report's ``Pn:`` lists the pressed ones.
+  Hard limits (``$21=1``, ``hard_limits=True``): a limit pin that changes, pressed or released
+  (moving off a switch re-trips it), raises ``ALARM:1`` at the point where it changed; a reset with
+  a switch pressed prints ``[MSG:Check Limits]`` and locks. :meth:`GrblEmulator.set_switch` holds
+  a switch pressed or released by hand.
+* Homing (``$H``, ``error:5`` if ``$22=0``): the build's ``homing_cycles`` in order (default Z,
+  then X and Y; ``("X",)`` for a firmware built for X only), each searching at ``$25`` over
+  1.5 × ``$130``, pulling off ``$27``, locating at ``$24``, pulling off, with ``$26`` of debounce, as
+  long as GRBL takes (5-11 s with GRBL's default rates; tests set fast rates and short travel);
+  ``ALARM:9`` when a switch is not found, ``ALARM:8`` when the pull-off leaves it pressed,
+  ``ALARM:6`` on a reset and ``ALARM:7`` on the safety-door byte 0x84 during the cycle. GRBL answers
+  no ``?`` while it homes (one report when it ends), then ``ok``; the homed axes stand at ``-$27``.
+  The physical position, and so the switches, survive resets.
 * Soft limits (``$20=1``, needs ``$22=1``, else ``error:10``; ``soft_limits=True``): a move whose
   target leaves the machine travel ``[-$130, 0]`` gives ``ALARM:2`` (a running motion first stops
   with a feed hold); a jog gives ``error:15``.
@@ -45,8 +57,8 @@ What it does, after GRBL 1.1h (checked against the firmware compiled for the PC,
   and right after an offset change), ``!`` feed hold (``Hold:1`` while decelerating at ``$120``,
   then ``Hold:0``), ``~`` cycle start, 0x18 soft reset (in motion: ``ALARM:3`` as above; after a
   completed hold: no alarm), 0x85 jog cancel.
-* :meth:`GrblEmulator.trigger_alarm` raises ``ALARM:N`` at any time as the firmware would (a limit
-  switch, a failed homing: motion stops, then the pause and the lock or the reset above);
+* :meth:`GrblEmulator.trigger_alarm` raises ``ALARM:N`` at any time as the firmware would (motion
+  stops, then the pause and the lock or the reset above);
   ``error_on`` maps commands to error codes (``{"G92": 20}``: any line with a G92 word; ``{"$H": 9}``:
   lines starting with ``$H``), ``drop_replies(n)`` loses the next n answers (a flaky cable),
   ``silent=True`` never answers anything (a wrong port). ``settings`` overrides ``$N`` values.
@@ -73,10 +85,14 @@ import tty
 from dataclasses import dataclass
 
 from tdof20.capture.hardware.grbl_emulator_commands import DEFAULT_SETTINGS, GrblCommands, _Deferred
-from tdof20.capture.hardware.grbl_timing import Segment, homing_phases
+from tdof20.capture.hardware.grbl_emulator_limits import (AXIS_LETTERS, DEFAULT_HOMING_CYCLES, DEFAULT_SWITCHES,
+                                                          GrblLimits, Homing, LimitSwitch)
+from tdof20.capture.hardware.grbl_timing import Segment
 
 UNLOCK_MSG = "[MSG:'$H'|'$X' to unlock]"
 RESET_MSG = "[MSG:Reset to continue]"
+CHECK_LIMITS_MSG = "[MSG:Check Limits]"
+POWER_UP = "power-up"                 # start_alarm: as GRBL powers up (the homing lock if $22=1)
 _RAMP_S = (500.0 / 60.0) / 10.0       # GRBL's defaults reach $110=500 mm/min in 0.83 s at $120=10 mm/s²
 _CRITICAL = (1, 2)                    # hard and soft limit: locked until a soft reset
 
@@ -89,52 +105,41 @@ def banner(version: str) -> str:
 BANNER = banner("1.1h")
 
 
-@dataclass
-class _Homing:
-    """A running homing cycle: X moves through ``phases`` (distance, seconds); ``alarm``: raised at
-    the end (the switch was not found)."""
-
-    start: list[float]
-    began: float
-    phases: list[tuple[float, float]]
-    alarm: int | None = None
-
-    @property
-    def until(self) -> float:
-        return self.began + sum(t for _, t in self.phases)
-
-    def x_at(self, now: float) -> float:
-        x, t0 = self.start[0], self.began
-        for d, t in self.phases:
-            if now < t0 + t:
-                return x + d * max(now - t0, 0.0) / t if t > 0 else x + d
-            x, t0 = x + d, t0 + t
-        return x
-
-
-class GrblEmulator(GrblCommands):
+class GrblEmulator(GrblLimits, GrblCommands):
     """An emulated GRBL 1.1 controller on a pty; see the module docstring."""
 
-    def __init__(self, start_alarm: int | None = None, silent: bool = False, speed_units_per_s: float = 360.0,
-                 error_on: dict[str, int] | None = None, *, homing_s: float | None = 0.2,
+    def __init__(self, start_alarm: int | None | str = POWER_UP, silent: bool = False,
+                 speed_units_per_s: float = 360.0, error_on: dict[str, int] | None = None, *,
                  homing_pulloff: float = 1.0, homing_enabled: bool = True, report_wpos: bool = False,
                  steps_per_unit: float = 250.0, boot_s: float = 0.05, accel_units_per_s2: float | None = None,
-                 alarm_pause_s: float = 0.5, auto_reset: bool = True, soft_limits: bool = False,
-                 switch_distance: float | None = 0.0, version: str = "1.1h",
+                 alarm_pause_s: float = 0.5, auto_reset: bool = False, soft_limits: bool = False,
+                 hard_limits: bool = False, switches: dict[str, LimitSwitch | float | None] | None = None,
+                 homing_cycles: tuple[str, ...] = DEFAULT_HOMING_CYCLES, version: str = "1.1h",
                  settings: dict[int, float] | None = None):
         if not (speed_units_per_s > 0):
             raise ValueError(f"speed_units_per_s must be > 0, got {speed_units_per_s!r}")
         accel = float(accel_units_per_s2) if accel_units_per_s2 is not None else speed_units_per_s / _RAMP_S
         if not (accel > 0):
             raise ValueError(f"accel_units_per_s2 must be > 0, got {accel_units_per_s2!r}")
+        if not (start_alarm is None or start_alarm == POWER_UP or isinstance(start_alarm, int)):
+            raise ValueError(f"start_alarm must be None, {POWER_UP!r} or an alarm code, got {start_alarm!r}")
         self.start_alarm = start_alarm
         self.silent = bool(silent)
         self.error_on = {self._clean(k): int(v) for k, v in (error_on or {}).items()}
-        self.homing_s = None if homing_s is None else float(homing_s)
         self.boot_s = float(boot_s)
         self.alarm_pause_s = float(alarm_pause_s)
         self.auto_reset = bool(auto_reset)
-        self.switch_distance = None if switch_distance is None else float(switch_distance)
+        given = DEFAULT_SWITCHES if switches is None else switches
+        self.switches: dict[str, LimitSwitch] = {}
+        for axis, sw in given.items():
+            if axis.upper() not in AXIS_LETTERS:
+                raise ValueError(f"switches: no axis {axis!r} (X, Y, Z)")
+            if sw is not None:
+                self.switches[axis.upper()] = sw if isinstance(sw, LimitSwitch) else LimitSwitch(float(sw))
+        cycles = tuple(str(c).upper() for c in homing_cycles)
+        if not cycles or any(not c or set(c) - set(AXIS_LETTERS) for c in cycles):
+            raise ValueError(f"homing_cycles must be groups of the axes X, Y, Z, got {homing_cycles!r}")
+        self.homing_cycles = cycles
         self.version = str(version)
         self.settings = dict(DEFAULT_SETTINGS)
         for i in range(3):
@@ -144,6 +149,7 @@ class GrblEmulator(GrblCommands):
         self.settings[10] = 0 if report_wpos else 1
         self.settings[22] = 1 if homing_enabled else 0
         self.settings[20] = 1 if soft_limits else 0
+        self.settings[21] = 1 if hard_limits else 0
         self.settings[27] = float(homing_pulloff)
         self.settings.update({int(k): float(v) for k, v in (settings or {}).items()})
         self.received: list[str] = []     # every command line received (as sent, without line end)
@@ -155,6 +161,8 @@ class GrblEmulator(GrblCommands):
         self._host_open = False
         self._drop = 0
         self._phys0 = [0.0, 0.0, 0.0]      # physical position of machine zero (survives resets)
+        self._forced: dict[int, bool] = {}   # switches held pressed / released by hand (set_switch)
+        self._pins_seen = ""
         self._init_machine(hard=True)
 
     # ------------------------------------------------------------------ public
@@ -185,6 +193,8 @@ class GrblEmulator(GrblCommands):
         if not self.auto_reset:             # booted long before the host came: its banner went nowhere
             with self._lock:
                 self._init_machine(hard=True)
+                if self._limits_at_init():
+                    self._alarm = True
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"grbl-emulator {self._port}", daemon=True)
         self._thread.start()
@@ -213,6 +223,13 @@ class GrblEmulator(GrblCommands):
         with self._lock:
             self._tick(time.monotonic())
             self._enter_alarm(int(code))
+
+    @property
+    def pins(self) -> str:
+        """The pressed limit pins (``"X"``, ``""``), as the status report's ``Pn:`` lists them."""
+        with self._lock:
+            self._tick(time.monotonic())
+            return self._pins()
 
     def drop_replies(self, n: int = 1) -> None:
         """Lose the next ``n`` ``ok``/``error`` answers (an unreliable link)."""
@@ -248,7 +265,7 @@ class GrblEmulator(GrblCommands):
             mpos = getattr(self, "_mpos", [0.0, 0.0, 0.0])
             self._phys0 = [p + m for p, m in zip(self._phys0, mpos)]
             self._mpos = [0.0, 0.0, 0.0]
-            self._alarm = self.start_alarm is not None
+            self._alarm = self._power_up_alarm() is not None
         self._parser_mpos = list(self._mpos)
         self._g92 = [0.0, 0.0, 0.0]
         self._absolute = True
@@ -258,7 +275,7 @@ class GrblEmulator(GrblCommands):
         self._queue: collections.deque[Segment] = collections.deque()
         self._seg: Segment | None = None
         self._hold: str | None = None          # None, "decel", "held"
-        self._homing: _Homing | None = None
+        self._homing: Homing | None = None
         self._report_asked = False             # a "?" during homing, answered when it ends
         self._deferred: _Deferred | None = None
         self._pending: collections.deque[bytes] = collections.deque()
@@ -276,6 +293,16 @@ class GrblEmulator(GrblCommands):
         self._boot_until: float | None = None
         if alarm is not None:
             self._alarm = True
+
+    @staticmethod
+    def _now() -> float:
+        return time.monotonic()
+
+    def _power_up_alarm(self) -> int | None:
+        """The alarm GRBL powers up in: ``None`` (Idle), 0 (the homing lock) or N."""
+        if self.start_alarm == POWER_UP:
+            return 0 if int(self.settings.get(22, 0)) else None
+        return self.start_alarm
 
     def _wco(self) -> list[float]:
         return list(self._g92)             # G54..G59 offsets are all zero here
@@ -383,9 +410,13 @@ class GrblEmulator(GrblCommands):
     def _boot_output(self) -> None:
         self._out("")
         self._out(banner(self.version))
-        if self.start_alarm is not None:
-            if self.start_alarm > 0:
-                self._out(f"ALARM:{self.start_alarm}")
+        code = self._power_up_alarm()
+        if code:
+            self._out(f"ALARM:{code}")
+        if self._limits_at_init():
+            self._alarm = True
+            self._out(CHECK_LIMITS_MSG)
+        if self._alarm:
             self._out(UNLOCK_MSG)
 
     def _soft_reset(self) -> None:
@@ -409,6 +440,9 @@ class GrblEmulator(GrblCommands):
         self._alarm = bool(was_alarm)
         self._out("")
         self._out(banner(self.version))
+        if self._limits_at_init():               # CHECK_LIMITS_AT_INIT: a switch pressed, hard limits on
+            self._alarm = True
+            self._out(CHECK_LIMITS_MSG)
         if self._alarm:
             self._out(UNLOCK_MSG)
 
@@ -466,6 +500,9 @@ class GrblEmulator(GrblCommands):
                     self._hold = None
                 continue
             if b >= 0x80:
+                if b == 0x84 and self._homing is not None:
+                    self._enter_alarm(7)            # the safety door opened during homing
+                    continue
                 if b == 0x85 and self._moving() and (self._seg or self._queue[0]).jog:
                     self._feed_hold()
                 continue
@@ -518,9 +555,16 @@ class GrblEmulator(GrblCommands):
         if self._hold == "decel":
             seg = self._seg or (self._queue[0] if self._queue else None)
             if seg is not None and seg.v > 0:
+                before, done0 = list(self._mpos), seg.done
                 seg.advance(dt, hold=True)
                 self._mpos = seg.at()
                 dt = 0.0
+                f = self._first_pin_change(before, self._mpos)
+                if f is not None:                      # a limit pin changed while stopping
+                    seg.done = done0 + (seg.done - done0) * f
+                    self._mpos = seg.at()
+                    self._check_pins()
+                    return
             if seg is None or seg.v <= 0:
                 self._hold = "held"
                 if seg is not None and seg.jog:      # a held jog is cancelled
@@ -530,46 +574,14 @@ class GrblEmulator(GrblCommands):
                     self._hold = None
         if self._hold is None and self._homing is None:
             self._advance(dt)
+        if self._homing is None and not self._critical:
+            self._check_pins()
         d = self._deferred
         if d is not None and d.ready() and self._deferred is d:
             self._deferred = None
             if d.reply:
                 self._reply(0)
             self._process_pending()
-
-    def _homing_tick(self, now: float) -> None:
-        h = self._homing
-        if now < h.until:
-            self._mpos = [h.x_at(now)] + list(h.start[1:])
-            return
-        self._homing = None
-        if h.alarm is not None:
-            self._mpos = [h.x_at(now)] + list(h.start[1:])
-            self._enter_alarm(h.alarm)
-            return
-        pulloff = self.settings.get(27, 1.0)
-        self._phys0[0] = self._phys0[0] + h.x_at(now) + pulloff      # the switch: -$27 + pull-off
-        self._mpos = [-pulloff] * 3
-        self._parser_mpos = list(self._mpos)
-        self._alarm = False
-        if self._report_asked:                 # the one report GRBL owes, sent as the cycle ends
-            self._report_asked = False
-            self._report(tick=False, state="Home")
-
-    def _start_homing(self) -> None:
-        """``$H``: a fixed ``homing_s``, or GRBL's cycle from the settings towards the switch."""
-        now = time.monotonic()
-        start = list(self._mpos)
-        if self.homing_s is not None:
-            pulloff = self.settings.get(27, 1.0)
-            self._homing = _Homing(start, now, [(-pulloff - start[0], self.homing_s)])
-        else:
-            to_switch = None
-            if self.switch_distance is not None:
-                to_switch = max(self.switch_distance - (self._phys0[0] + start[0]), 0.0)
-            phases = homing_phases(self.settings, 0, to_switch)
-            self._homing = _Homing(start, now, phases, alarm=9 if len(phases) == 1 else None)
-        self._deferred = _Deferred(lambda: self._homing is None and not self._alarm)
 
     def _advance(self, dt: float) -> None:
         while dt > 0:
@@ -578,8 +590,16 @@ class GrblEmulator(GrblCommands):
                     return
                 self._seg = self._queue.popleft()
             seg = self._seg
+            before = list(self._mpos)
+            done0 = seg.done
             dt = seg.advance(dt)
             self._mpos = seg.at()
+            f = self._first_pin_change(before, self._mpos)
+            if f is not None:                          # a limit pin changed on the way: a hard limit
+                seg.done = done0 + (seg.done - done0) * f
+                self._mpos = seg.at()
+                self._check_pins()
+                return
             if seg.finished:
                 self._mpos = list(seg.target)
                 self._seg = None
@@ -601,6 +621,9 @@ class GrblEmulator(GrblCommands):
         feed = seg.v * 60.0 if seg is not None and self._homing is None else 0.0
         fields = [state, ("WPos:" + ",".join(f"{p:.3f}" for p in wpos)) if wpos_mode
                   else ("MPos:" + ",".join(f"{p:.3f}" for p in pos)), f"FS:{feed:.0f},0"]
+        pins = self._pins()
+        if pins:
+            fields.append(f"Pn:{pins}")
         if self._wco_counter <= 0:
             fields.append("WCO:" + ",".join(f"{w:.3f}" for w in wco))
             self._wco_counter = 30 if self._moving() else 10
@@ -639,17 +662,29 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, default=360.0, help="max rate, units per second")
     p.add_argument("--accel", type=float, default=None, help="acceleration, units per second squared")
     p.add_argument("--start-alarm", type=int, default=None,
-                   help="start in alarm: 0 = homing lock, 1..9 = ALARM:N pending")
+                   help="start in alarm: 0 = homing lock, 1..9 = ALARM:N pending (default: as GRBL powers up)")
     p.add_argument("--no-homing", action="store_true", help="homing disabled ($22=0)")
-    p.add_argument("--homing-s", type=float, default=2.0,
-                   help="homing takes this long; 0: as long as GRBL's cycle from the settings takes")
-    p.add_argument("--switch-distance", type=float, default=0.0, help="the home switch's distance, units")
-    p.add_argument("--no-auto-reset", action="store_true", help="a board that does not reset when opened")
+    p.add_argument("--x-only", action="store_true", help="a firmware built to home X only (default: Z, then XY)")
+    p.add_argument("--switch-distance", type=float, default=2.0,
+                   help="units from the start to the X home flag (once per 360 units) and the Y/Z limit switches")
+    p.add_argument("--auto-reset", action="store_true", help="a board that resets when the port opens (DTR)")
     p.add_argument("--soft-limits", action="store_true", help="soft limits on ($20=1)")
+    p.add_argument("--hard-limits", action="store_true", help="hard limits on ($21=1)")
+    p.add_argument("--set", action="append", default=[], metavar="N=V", help="a setting, e.g. --set 25=3000")
     a = p.parse_args(argv)
-    emu = GrblEmulator(a.start_alarm, speed_units_per_s=a.speed, homing_enabled=not a.no_homing,
-                       homing_s=a.homing_s or None, accel_units_per_s2=a.accel, switch_distance=a.switch_distance,
-                       auto_reset=not a.no_auto_reset, soft_limits=a.soft_limits).start()
+    d = a.switch_distance
+    settings = {}
+    for item in a.set:
+        key, _, val = item.partition("=")
+        try:
+            settings[int(key.lstrip("$"))] = float(val)
+        except ValueError:
+            p.error(f"--set {item!r}: expected N=VALUE, e.g. 25=3000")
+    emu = GrblEmulator(POWER_UP if a.start_alarm is None else a.start_alarm, speed_units_per_s=a.speed,
+                       homing_enabled=not a.no_homing, accel_units_per_s2=a.accel, auto_reset=a.auto_reset,
+                       soft_limits=a.soft_limits, hard_limits=a.hard_limits,
+                       switches={"X": LimitSwitch(d, 2.0, 360.0), "Y": LimitSwitch(d), "Z": LimitSwitch(d)},
+                       homing_cycles=("X",) if a.x_only else DEFAULT_HOMING_CYCLES, settings=settings).start()
     print(f"GRBL emulator on {emu.port} (Ctrl-C ends)", flush=True)
     try:
         while True:

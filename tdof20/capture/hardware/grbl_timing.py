@@ -6,10 +6,12 @@ GRBL plans every block with a trapezoidal speed profile: it accelerates at the a
 decelerates to stop at the end of the block (the driver sends one move at a time and waits for it,
 so there is no junction blending). A feed hold decelerates at the same rate.
 
-A homing cycle (``$H``) per axis: a search towards the switch at the seek rate ``$25`` over at most
-1.5 × the max travel ``$130``-``$132`` (no switch by then: ``ALARM:9``), a pull-off of ``$27`` at the
-seek rate, a slow locate at the feed rate ``$24`` over at most 5 × ``$27``, and a last pull-off;
-each phase ends with the debounce delay ``$26`` (ms).
+A homing cycle (``$H``, GRBL 1.1h's ``limits_go_home``) per group of axes: a search towards the
+switches at the seek rate ``$25`` over at most 1.5 × the max travel ``$130``-``$132`` (an axis stops
+dead when its switch triggers; no switch by then: ``ALARM:9``), a pull-off of ``$27`` at the seek rate
+(the switch still pressed after it: ``ALARM:8``), a slow locate at the feed rate ``$24`` over at most
+5 × ``$27``, and a last pull-off; each phase ends with the debounce delay ``$26`` (ms). The default
+build homes Z first, then X and Y together.
 """
 
 from __future__ import annotations
@@ -40,21 +42,18 @@ def move_time(distance: float, rate: float, accel: float) -> float:
     return 2.0 * rate / accel + (distance - ramp) / rate
 
 
-def homing_phases(settings: dict[int, float], axis: int, to_switch: float | None) -> list[tuple[float, float]]:
-    """The homing cycle of one axis as (signed distance towards the switch, seconds) phases.
-    ``to_switch``: how far the switch is (``None`` or beyond the search distance: the search runs its
-    whole length, after which GRBL raises ``ALARM:9``; then only that phase is returned)."""
-    s = {**_DEFAULTS, **settings}
-    seek, feed = max(s[25], 1e-6) / 60.0, max(s[24], 1e-6) / 60.0
-    pulloff, accel, debounce = s[27], max(s[120 + axis], 1e-6), s[26] / 1000.0
-    search = HOMING_SEARCH_SCALAR * s[130 + axis]
-    if to_switch is None or to_switch > search:
-        return [(search, move_time(search, seek, accel) + debounce)]
-    d = max(float(to_switch), 0.0)
-    return [(d, move_time(d, seek, accel) + debounce),
-            (-pulloff, move_time(pulloff, seek, accel) + debounce),
-            (pulloff, move_time(pulloff, feed, accel) + debounce),
-            (-pulloff, move_time(pulloff, seek, accel) + debounce)]
+def contact_time(distance: float, rate: float, accel: float) -> float:
+    """Seconds from rest until a move towards a switch ``distance`` units away reaches it, accelerating
+    to ``rate`` and never slowing down (GRBL stops the axis dead when its switch triggers)."""
+    distance = abs(float(distance))
+    if distance <= 0:
+        return 0.0
+    if not (accel > 0 and math.isfinite(accel)):
+        return distance / rate
+    ramp = rate * rate / (2.0 * accel)            # distance to reach the rate
+    if distance <= ramp:
+        return math.sqrt(2.0 * distance / accel)
+    return rate / accel + (distance - ramp) / rate
 
 
 def homing_worst_case_s(settings: dict[int, float], axes: int = 3) -> float:
