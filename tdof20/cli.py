@@ -128,18 +128,20 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
 # ----------------------------------------------------------------------------------- capture
 def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, step_deg: float, arm_positions: int,
                     width: int, height: int, seed: int, clutter: str = "", direction: str = "ccw",
-                    record_direction: bool = True, hand_eye_error: str = "", step_jitter: float = 0.0):
+                    record_direction: bool = True, hand_eye_error: str = "", step_jitter: float = 0.0,
+                    depth_bias: float = 1.0):
     if config is not None and sim:
         raise TdofError("give either a CONFIG file or --sim, not both")
     if config is None and not sim:
         raise TdofError("give a CONFIG file (see examples/real_rig.toml), or --sim for the simulated rig")
     lab_given = [o for o, v in (("--clutter", clutter), ("--direction", direction != "ccw"),
                                 ("--no-record-direction", not record_direction),
-                                ("--hand-eye-error", hand_eye_error), ("--step-jitter", step_jitter)) if v]
+                                ("--hand-eye-error", hand_eye_error), ("--step-jitter", step_jitter),
+                                ("--depth-bias", depth_bias != 1.0)) if v]
     if config is not None:
         if lab_given:
             raise TdofError(f"{', '.join(lab_given)} go with --sim; in a CONFIG set them in its [sim] table "
-                            f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg) and "
+                            f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg, depth_bias) and "
                             f"[turntable] direction")
         return load_config(config)
 
@@ -158,7 +160,8 @@ def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, s
     he_mm, he_deg = (he + [0.0, 0.0])[:2]
     return sim_config(_scene(scene), steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
                       seed=seed, clutter=names, direction=direction, record_direction=record_direction,
-                      hand_eye_error_mm=he_mm, hand_eye_error_deg=he_deg, step_jitter_deg=step_jitter)
+                      hand_eye_error_mm=he_mm, hand_eye_error_deg=he_deg, step_jitter_deg=step_jitter,
+                      depth_bias=depth_bias)
 
 
 CONFIG_ARG = typer.Argument(None, help="capture config (TOML); leave out with --sim")
@@ -174,6 +177,8 @@ RECORD_DIRECTION = typer.Option(True, "--record-direction/--no-record-direction"
 HAND_EYE_ERROR = typer.Option("", help="--sim: hand-eye error MM[,DEG]: the camera really sits this far "
                                        "from the recorded mount (e.g. 2,0.5)")
 STEP_JITTER = typer.Option(0.0, help="--sim: step-angle error bound in degrees (uniform, per frame)")
+DEPTH_BIAS = typer.Option(1.0, help="--sim: the camera's depth scale error, reported / true depth "
+                                    "(1.02: depth reads 2 % long, as consumer stereo cameras often do)")
 
 
 @capture_app.command("plan")
@@ -181,12 +186,12 @@ def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: st
                  step_deg: float = STEP_DEG, arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT,
                  seed: int = SEED, clutter: str = CLUTTER, direction: str = DIRECTION,
                  record_direction: bool = RECORD_DIRECTION, hand_eye_error: str = HAND_EYE_ERROR,
-                 step_jitter: float = STEP_JITTER,
+                 step_jitter: float = STEP_JITTER, depth_bias: float = DEPTH_BIAS,
                  json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
     """Print the sequence a session will run and its estimated duration; checks every arm target
     against the workspace limits. Touches no hardware."""
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
-                          direction, record_direction, hand_eye_error, step_jitter)
+                          direction, record_direction, hand_eye_error, step_jitter, depth_bias)
     d = describe(cfg)
     if json_out:
         print(json.dumps(d, indent=2))
@@ -219,10 +224,11 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
                 arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
                 clutter: str = CLUTTER, direction: str = DIRECTION, record_direction: bool = RECORD_DIRECTION,
                 hand_eye_error: str = HAND_EYE_ERROR, step_jitter: float = STEP_JITTER,
+                depth_bias: float = DEPTH_BIAS,
                 yes: bool = typer.Option(False, "--yes", help="do not wait for the operator (scripted runs)")) -> None:
     """Run (or resume) a capture session and write the raw session format."""
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
-                          direction, record_direction, hand_eye_error, step_jitter)
+                          direction, record_direction, hand_eye_error, step_jitter, depth_bias)
     resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     summary = run_capture(cfg, out, yes=yes, resume_command=resume)
     for line in summary.lines():

@@ -239,6 +239,7 @@ record_direction = false
 hand_eye_error_mm = 2.0
 hand_eye_error_deg = 0.5
 step_jitter_deg = 0.05
+depth_bias = 1.02
 """
 
 
@@ -249,6 +250,7 @@ def test_lab_options_from_a_toml_config(tmp_path):
     assert cfg.turntable.direction == "cw" and cfg.sim.clutter == ("cabinet", "wall")
     assert not cfg.sim.record_direction and cfg.sim.hand_eye_error_mm == 2.0 and cfg.sim.step_jitter_deg == 0.05
     rig = build_rig(cfg)
+    assert cfg.sim.depth_bias == 1.02 and rig.world.renderer.sensor.depth_bias == 1.02
     assert rig.world.table == TableMotion("cw", 0.05, 0) and rig.world.renderer.clutter == ("cabinet", "wall")
     assert np.array_equal(hand_eye(cfg), DEFAULT_T_TCP_CAM)
 
@@ -260,6 +262,7 @@ def test_lab_options_from_a_toml_config(tmp_path):
     (("step_jitter_deg = 0.05", "step_jitter_deg = 20.0"), "sim.step_jitter_deg: must be in [0, step_deg / 2"),
     (("hand_eye_error_deg = 0.5", "hand_eye_error_deg = -1.0"), "sim.hand_eye_error_deg: must be in [0, 10]"),
     (("hand_eye_error_mm = 2.0", "hand_eye_error_mm = 0.2e3"), "sim.hand_eye_error_mm: must be in [0, 50]"),
+    (("depth_bias = 1.02", "depth_bias = 102"), "sim.depth_bias: must be in [0.9, 1.1] (reported / true depth"),
 ])
 def test_lab_config_mistakes_are_one_line(tmp_path, edit, needle):
     p = tmp_path / "lab.toml"
@@ -273,7 +276,8 @@ def test_capture_run_cli_lab_options(tmp_path):
     exe = [sys.executable, "-m", "tdof20.cli", "capture", "run", "--sim", "--steps", "2", "--step-deg", "30",
            "--arm-positions", "1", "--width", "80", "--height", "60", "--yes", "--out"]
     res = subprocess.run(exe + [str(tmp_path / "s"), "--clutter", "cabinet,wall", "--direction", "cw",
-                                "--hand-eye-error", "2,0.5", "--step-jitter", "0.05", "--no-record-direction"],
+                                "--hand-eye-error", "2,0.5", "--step-jitter", "0.05", "--no-record-direction",
+                                "--depth-bias", "1.02"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     d = json.loads((tmp_path / "s" / "session.json").read_text())
@@ -281,6 +285,7 @@ def test_capture_run_cli_lab_options(tmp_path):
     assert d["sim"]["lab"] == {"clutter": ["cabinet", "wall"], "hand_eye_error_mm": 2.0, "hand_eye_error_deg": 0.5,
                                "step_jitter_deg": 0.05}
     rig = read_json(tmp_path / "s" / "truth" / "rig.json")
+    assert rig["depth_bias"] == 1.02  # in the truth only: session.json does not tell annotation
     assert rig["direction"] == "cw" and rig["table_angle_deg"]["transparent"][0][1] < -29.9
     res = subprocess.run(exe + [str(tmp_path / "t"), "--clutter", "cabinet,sofa"], capture_output=True, text=True,
                          timeout=300)

@@ -163,13 +163,14 @@ class _LabelJob:
     models: dict                      # {obj_id: (V (V,3), F (F,3))}
     samples: dict | None              # {obj_id: (N,3)} or None: sampled in the worker when needed
     cfg: LabelConfig
+    depth_factor: float = 1.0         # multiplies the camera's depth_scale (the registration's correction)
     key: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     def state(self) -> _WorkerState:
         return process_cache(("label", self.key), self._build)
 
     def _build(self) -> _WorkerState:
-        session = RawSession.open(self.session_dir)
+        session = RawSession.open(self.session_dir).with_depth_factor(self.depth_factor)
         cam = session.info.camera
         return _WorkerState(session, cam, ModelRaycaster(self.models, cam))
 
@@ -459,7 +460,8 @@ def _stats(x: list[float]) -> dict:
 def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                 placements: Iterable[tuple[int, np.ndarray]], models: Mapping[int, tuple[np.ndarray, np.ndarray]],
                 cfg: LabelConfig = LabelConfig(), skip: Any = (), progress: bool = True,
-                samples: Mapping[int, np.ndarray] | None = None, reuse: bool = True) -> dict:
+                samples: Mapping[int, np.ndarray] | None = None, reuse: bool = True,
+                depth_factor: float = 1.0) -> dict:
     """Label every frame of the transparent phase of a raw session into the BOP scene ``out_dir``.
 
     T_ref_frames: {(arm, step): (4,4)} camera of frame (arm, step) -> reference camera (arm 0,
@@ -475,6 +477,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         area-uniform samples of each mesh (seed 0), drawn in each worker when needed.
     reuse: keep a frame whose files and labels on disk are already the ones this run would write
         (False: label every frame again, e.g. when the label gate's options changed since).
+    depth_factor: multiplies session.json's ``camera.depth_scale`` (the registration's depth-scale
+        correction, ``1 / RegistrationResult.depth_factor``): the gate reads true millimetres and
+        scene_camera.json's ``depth_scale`` says what the depth images really mean.
 
     Returns a summary: ``frames`` (planned), ``labelled``, ``already_done``, ``skipped``
     ([{im_id, arm, step, reason}]), ``removed`` (im_ids whose earlier labels were removed because
@@ -488,7 +493,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     ``comparison`` (raycast vs far_to_near IoUs over the compared frames, or None).
     """
     t_start = time.perf_counter()
-    session = RawSession.open(session_dir)
+    session = RawSession.open(session_dir).with_depth_factor(depth_factor)
     info = session.info
     cam = info.camera
     steps, n_arms = info.steps, info.n_arms
@@ -570,7 +575,7 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
     writer.flush()
 
     # --- run ------------------------------------------------------------------------------------
-    job = _LabelJob(str(session.path), str(out), tuple(places), model_map, samples, cfg)
+    job = _LabelJob(str(session.path), str(out), tuple(places), model_map, samples, cfg, depth_factor)
     chunks = [todo[i:i + cfg.chunk] for i in range(0, len(todo), cfg.chunk)]
     labelled, no_opaque, comparisons = [], [], []
     times: dict[str, float] = {}

@@ -86,6 +86,7 @@ from tdof20.annotate.config import (AnnotateConfig, PlaceConfig, QAConfig, annot
 from tdof20.annotate.corrections import JOURNAL, REJECTED
 from tdof20.annotate.executors import executor_scope
 from tdof20.annotate.registration import RegistrationResult
+from tdof20.annotate.registration_result import depth_scale_text
 from tdof20.annotate.stages import STAGE_RECORDS, STAGES, MissingInput, StageContext, parse_stages
 from tdof20.annotate.state import (WORK, FolderLock, StateFile, clear_scene, remove_stale_temp_files,
                                    session_identity, sha_obj)
@@ -115,7 +116,8 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
             s["registration"] = {"flagged": [{"arm": a, "step": k, "reason": r} for a, k, r in reg.flagged_frames()],
                                  "arms": [{"arm": a.arm, "flagged": a.flagged, "reason": a.reason,
                                            "correction_deg": a.correction_deg, "correction_mm": a.correction_mm}
-                                          for a in reg.arms]}
+                                          for a in reg.arms],
+                                 "depth_scale": reg.depth_scale}
         except TdofError as e:
             s["problems"].append(str(e))
     rec = ctx.rec_dir / "reconstruction.json"
@@ -307,6 +309,9 @@ def summary_text(summary: dict) -> str:
         lines.append(f"  object {p['obj_id']}: FAILED, not labelled: {p['reason']}")
     if summary.get("partial"):
         lines.append(f"  partial: {len(summary['failed_objects'])} object(s) not labelled (exit code 3)")
+    ds = (summary.get("registration") or {}).get("depth_scale") or {}
+    if ds:
+        lines.append(f"  depth scale {depth_scale_text(ds)}")
     flagged = (summary.get("registration") or {}).get("flagged") or []
     lab = summary.get("label") or {}
     if lab:

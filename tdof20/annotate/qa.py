@@ -33,7 +33,7 @@ from typing import Any, Iterable
 import cv2
 import numpy as np
 
-from tdof20.annotate.registration_result import RegistrationResult
+from tdof20.annotate.registration_result import RegistrationResult, depth_scale_text
 from tdof20.errors import TdofError
 from tdof20.formats import (SCENE_CAMERA, BopScene, RawSession, atomic_write_bytes, read_json, read_png, read_scene,
                             write_json, write_png)
@@ -468,6 +468,7 @@ def _html(s: dict, reg, evaluation: dict | None) -> str:
                  _n(bool(a.flagged)), _e(a.reason)] for a in reg.arms]
         p.append(_table(["arm", "fitness", "rmse (mm)", "correction (deg)", "correction (mm)", "flagged", "reason"], rows,
                         left=[6], bad=[i for i, a in enumerate(reg.arms) if a.flagged]))
+        p.append(f"<p>Depth scale: {_e(depth_scale_text(reg.depth_scale))}</p>")
     if evaluation:
         p.append(_evaluation_html(evaluation))
     p.append("<h2>Overlays</h2><p>visible mask filled and outlined, full silhouette dashed, model points "

@@ -96,6 +96,13 @@ class RegistrationConfig:
     arm_axis_max_mm: float = 15.0             # every arm's turntable axis within this of the others' (at the
     arm_axis_max_deg: float = 3.0             # table top) and this in direction, through the arms' poses
     arm_plane_max_mm: float = 10.0            # every arm's table top within this of the others' (along the axis)
+    # the depth camera's scale error, from the arm positions (registration.depth_scale_from_arms)
+    depth_scale_correct: bool = True          # divide the depth by the estimate (off: only measure it)
+    depth_scale_rounds: int = 2               # ICP rounds: on the clouds as read, then divided by the first estimate
+    depth_scale_max: float = 1.05             # a scale error beyond 1/x..x is refused, not corrected
+    depth_scale_max_ci95: float = 0.01        # an estimate less sure than this (95 % half-width) is refused
+    depth_scale_icp_mm: float = 0.5           # the arm-to-arm ICP's translation error along the arms' baseline
+    depth_scale_min_baseline_mm: float = 50.0  # arm positions closer than this say nothing of the scale
 
     def __post_init__(self) -> None:
         check_ranges(self, "register", positive=(
@@ -106,7 +113,8 @@ class RegistrationConfig:
             "prior_sigma_r_mm", "pass1_edge_max_deg", "pass1_edge_max_mm", "edge_max_deg", "edge_max_mm",
             "model_voxel_mm", "frame_icp_dist_mm", "max_rmse_mm", "max_residual_deg", "max_residual_mm",
             "arm_prior_sigma_deg", "arm_prior_sigma_mm", "max_arm_correction_deg", "max_arm_correction_mm",
-            "arm_axis_max_mm", "arm_axis_max_deg", "arm_plane_max_mm"),
+            "arm_axis_max_mm", "arm_axis_max_deg", "arm_plane_max_mm", "depth_scale_rounds", "depth_scale_max", "depth_scale_max_ci95",
+            "depth_scale_icp_mm", "depth_scale_min_baseline_mm"),
             non_negative=("crop_below_mm", "crop_margin_mm", "edge_angles_deg", "pass1_edge_angles_deg",
                           "pass2_first_level"),
             fraction=("map_max_variation", "plane_window", "plane_max_below", "plane_moving_below", "edge_min_fitness", "min_fitness", "arm_min_fitness"))

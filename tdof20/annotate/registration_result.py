@@ -17,8 +17,10 @@ import numpy as np
 
 from tdof20.errors import TdofError
 from tdof20.formats.io import read_json, write_json
+from tdof20.formats.session import RawSession
 
-__all__ = ["FrameRegistration", "ArmRegistration", "RegistrationResult", "RESULT_FORMAT", "RESULT_VERSION"]
+__all__ = ["FrameRegistration", "ArmRegistration", "RegistrationResult", "RESULT_FORMAT", "RESULT_VERSION",
+           "depth_scale_text"]
 
 RESULT_FORMAT = "tdof20-registration"
 RESULT_VERSION = 1
@@ -93,6 +95,18 @@ class RegistrationResult:
     config: dict = field(default_factory=dict)
     timing_s: dict = field(default_factory=dict)
     turntable: dict = field(default_factory=dict)   # direction used and where it came from
+    depth_scale: dict = field(default_factory=dict)  # registration.DepthScale.to_dict(); {} = not estimated
+
+    @property
+    def depth_factor(self) -> float:
+        """Reported / true depth as estimated (1.0 when not estimated): the later stages divide
+        every depth of the session by it (:meth:`corrected`)."""
+        return float(self.depth_scale.get("factor", 1.0) or 1.0)
+
+    def corrected(self, session: RawSession) -> RawSession:
+        """``session`` with its camera's ``depth_scale`` divided by :attr:`depth_factor`: every depth
+        it loads is then in true millimetres, and the labels' scene_camera.json says so."""
+        return session.with_depth_factor(1.0 / self.depth_factor)
 
     def frame(self, arm: int, step: int) -> FrameRegistration:
         for f in self.frames:
@@ -127,6 +141,7 @@ class RegistrationResult:
         return {"format": RESULT_FORMAT, "version": RESULT_VERSION, "scene_id": self.scene_id,
                 "steps": self.steps, "step_deg": self.step_deg, "n_arms": self.n_arms,
                 "config": self.config, "timing_s": self.timing_s, "turntable": self.turntable,
+                "depth_scale": self.depth_scale,
                 "arms": [a.to_dict() for a in self.arms], "frames": [f.to_dict() for f in self.frames]}
 
     @classmethod
@@ -140,7 +155,7 @@ class RegistrationResult:
             return cls(str(d["scene_id"]), int(d["steps"]), float(d["step_deg"]), int(d["n_arms"]),
                        [FrameRegistration.from_dict(f) for f in d["frames"]],
                        [ArmRegistration.from_dict(a) for a in d["arms"]], dict(d.get("config", {})),
-                       dict(d.get("timing_s", {})), dict(d.get("turntable", {})))
+                       dict(d.get("timing_s", {})), dict(d.get("turntable", {})), dict(d.get("depth_scale") or {}))
         except (KeyError, TypeError, ValueError) as e:
             raise TdofError(f"malformed registration result ({type(e).__name__}: {e})", path) from None
 
@@ -153,6 +168,17 @@ class RegistrationResult:
     @classmethod
     def load(cls, path: str | Path) -> "RegistrationResult":
         return cls.from_dict(read_json(path), path)
+
+
+def depth_scale_text(ds: dict) -> str:
+    """One phrase for the registration's depth-scale estimate (``RegistrationResult.depth_scale``)."""
+    if not ds.get("arms"):
+        return ds.get("note") or "not estimated"
+    m, f, ci = ds["measured"], ds["factor"], ds.get("ci95")
+    bound = f" +- {100 * ci:.2f} %" if ci is not None else ""
+    what = (f"corrected (depth divided by {f:.4f})" if f != 1.0 else "not corrected")
+    return (f"{m:.4f}{bound} (95 %; the depth read {100 * (m - 1):+.2f} % against the robot's poses, "
+            f"{ds['arms']} arm pair(s)): {what}")
 
 
 def _f(x: float) -> float | None:

@@ -187,8 +187,29 @@ def _register(ctx: StageContext) -> dict:
                         f"annotation registers the opaque twins' depth; capture the opaque phase first",
                         ctx.raw / "session.json")
     reg = register_session(ctx.raw, ctx.cfg.register, progress=ctx.progress, workers=ctx.cfg.label.workers)
+    check_depth_scale(reg, ctx.cfg.register, ctx.raw / "session.json")
     reg.save(ctx.reg_file)
-    return {"flagged": len(reg.flagged_frames())}
+    return {"flagged": len(reg.flagged_frames()), "depth_scale": reg.depth_scale.get("measured")}
+
+
+def check_depth_scale(reg: RegistrationResult, cfg, session_file: Path) -> None:
+    """Refuse a session whose depth scale error is beyond what annotation corrects
+    (``register.depth_scale_max``) or cannot be pinned down (its 95 % bound wider than
+    ``register.depth_scale_max_ci95``): labels from it would be off by the error times the
+    object's distance, ~10 mm at 2 % and 500 mm, and no later check would see it."""
+    ds = reg.depth_scale
+    if not ds.get("arms"):
+        return
+    m, ci = float(ds["measured"]), ds.get("ci95")
+    if not 1.0 / cfg.depth_scale_max <= m <= cfg.depth_scale_max:
+        raise TdofError(f"the depth reads {m:.4f} x the true depth (the arm positions' registration against the "
+                        f"robot's poses), beyond the {100 * (cfg.depth_scale_max - 1):.0f} % annotation corrects: "
+                        f"calibrate the camera, or multiply camera.depth_scale by {1.0 / m:.5g}", session_file)
+    if ci is not None and ci > cfg.depth_scale_max_ci95:
+        per = ", ".join(f"arm {a}: {v:.4f}" for a, v in (ds.get("per_arm") or {}).items())
+        raise TdofError(f"the depth scale cannot be pinned down: the arm positions disagree ({per}; 95 % bound "
+                        f"+-{100 * ci:.2f} %, limit {100 * cfg.depth_scale_max_ci95:.2f} %); check the robot's "
+                        f"poses and the hand-eye calibration in session.json", session_file)
 
 
 REGISTER = Stage(
@@ -223,7 +244,7 @@ def ordered_prefetch(fn: Callable, items: list, ahead: int = 4, threads: int = 2
 
 def _reconstruct(ctx: StageContext) -> dict:
     reg = RegistrationResult.load(ctx.reg_file)
-    s = ctx.session
+    s = reg.corrected(ctx.session)  # the depth in true millimetres (the registration's scale estimate)
     todo = fuse_selection([f for f in reg.frames if reg.usable(f.arm, f.step)], ctx.cfg.fuse_max_frames)
     used: list[list[int]] = []
     problems: list[dict] = []
@@ -447,11 +468,12 @@ def _label(ctx: StageContext) -> dict:
         "scene_id": info.scene_id, "n_arms": info.n_arms, "steps": info.steps, "step_deg": info.step_deg,
         "labels": "tdof20 annotate (registered opaque depth, placed models)",
         "source_session": str(ctx.raw.resolve()), "label_method": ctx.cfg.label.method, "label_gate": gate,
+        "depth_scale": reg.depth_scale,
         "objects": [{"gt_id": p["gt_id"], "obj_id": p["obj_id"], "source": p["source"]} for p in pl]})
     T_ref_frames = {(f.arm, f.step): f.T_ref_frame for f in reg.frames}
     summary = label_scene(ctx.raw, ctx.out, T_ref_frames, [(int(p["obj_id"]), T_arr(p["T_ref_model"])) for p in pl],
                           models, ctx.cfg.label, skip=ctx.corrections().skip(reg.flagged_frames(), info.n_arms, info.steps),
-                          progress=ctx.progress, reuse=reuse)
+                          progress=ctx.progress, reuse=reuse, depth_factor=1.0 / reg.depth_factor)
     write_json(ctx.label_file, summary)
     if summary["labelled"] + summary["already_done"] == 0:
         first = "; ".join(sorted({s["reason"] for s in summary["skipped"]})[:3])

@@ -104,6 +104,7 @@ class SimConfig:
     hand_eye_error_mm: float = 0.0        # the camera really sits this far from the recorded hand-eye
     hand_eye_error_deg: float = 0.0       # ... and turned by this much (direction seeded by sim.seed)
     step_jitter_deg: float = 0.0          # the table stands at nominal + U[-jitter, jitter] per frame
+    depth_bias: float = 1.0               # the camera's depth reads this multiple of the true depth (1.02: 2 % long)
 
 
 @dataclass(frozen=True)
@@ -235,15 +236,19 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
         _fail(src, "sim.hand_eye_error_deg", f"must be in [0, 10] degrees, got {sm.hand_eye_error_deg}")
     if not 0 <= sm.step_jitter_deg < t.step_deg / 2:
         _fail(src, "sim.step_jitter_deg", f"must be in [0, step_deg / 2 = {t.step_deg / 2:g}) degrees, got {sm.step_jitter_deg}")
+    if not 0.9 <= sm.depth_bias <= 1.1:
+        _fail(src, "sim.depth_bias", f"must be in [0.9, 1.1] (reported / true depth; 1.02 reads 2 % long), "
+                                     f"got {sm.depth_bias}")
     return cfg
 
 
 def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0.9, n_arms: int = 4,
                width: int = 640, height: int = 480, seed: int = 0, phases=PHASES, clutter=(),
                direction: str = "ccw", record_direction: bool = True, hand_eye_error_mm: float = 0.0,
-               hand_eye_error_deg: float = 0.0, step_jitter_deg: float = 0.0) -> CaptureConfig:
+               hand_eye_error_deg: float = 0.0, step_jitter_deg: float = 0.0,
+               depth_bias: float = 1.0) -> CaptureConfig:
     """The config of a capture on the simulated rig (what ``capture run --sim`` builds); the
-    lab options (clutter ... step_jitter_deg) are those of :class:`SimConfig` and
+    lab options (clutter ... depth_bias) are those of :class:`SimConfig` and
     ``TurntableConfig.direction``."""
     cfg = CaptureConfig(session=SessionConfig(scene_id=scene_id, phases=tuple(phases)),
                         turntable=TurntableConfig(step_deg=step_deg, steps=steps, direction=direction),
@@ -252,5 +257,5 @@ def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0
                                       record_direction=record_direction,
                                       hand_eye_error_mm=float(hand_eye_error_mm),
                                       hand_eye_error_deg=float(hand_eye_error_deg),
-                                      step_jitter_deg=float(step_jitter_deg)))
+                                      step_jitter_deg=float(step_jitter_deg), depth_bias=float(depth_bias)))
     return validate(cfg)

@@ -26,13 +26,17 @@ def hand_eye(cfg: CaptureConfig) -> np.ndarray:
     return np.asarray(he, float).reshape(4, 4) if he else DEFAULT_T_TCP_CAM.copy()
 
 
-def lab_record(cfg: CaptureConfig) -> dict:
+def lab_record(cfg: CaptureConfig, session: bool = True) -> dict:
     """What session.json records of the simulated lab (under ``sim.lab``): the clutter and the
     sizes of the errors, not the errors themselves (those are in truth/rig.json); {} for a clean
-    rig. The direction is not here: it is ``turntable.direction``, or left out."""
+    rig. The direction is not here: it is ``turntable.direction``, or left out. The depth bias
+    is its own size, so session.json leaves it out (annotation must find it as on a real rig);
+    ``session=False`` gives it too (what ``capture plan`` shows)."""
     s = cfg.sim
     lab = {"clutter": list(s.clutter), "hand_eye_error_mm": s.hand_eye_error_mm,
            "hand_eye_error_deg": s.hand_eye_error_deg, "step_jitter_deg": s.step_jitter_deg}
+    if not session and s.depth_bias != 1.0:
+        lab["depth_bias"] = s.depth_bias
     return {k: v for k, v in lab.items() if v}
 
 
@@ -150,7 +154,7 @@ def describe(cfg: CaptureConfig) -> dict:
         "arms": [{"arm": a, "q_deg": np.degrees(q).round(2).tolist(), "tcp_mm": ur5_fk(q)[:3, 3].round(1).tolist(),
                   "problems": [p.message for p in problems if p.arm == a]} for a, q in enumerate(targets)],
         "steps": cfg.turntable.steps, "step_deg": cfg.turntable.step_deg, "direction": cfg.turntable.direction,
-        "lab": lab_record(cfg) if cfg.is_sim else {},
+        "lab": lab_record(cfg, session=False) if cfg.is_sim else {},
         "estimate": estimate_duration(cfg, targets), "ok": not problems,
         "config": dataclasses.asdict(cfg.session),
     }

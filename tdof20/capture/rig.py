@@ -44,6 +44,7 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     # the renderer imports open3d (tdof20.o3d) at the top: only a simulated rig needs it
     from tdof20.capture.hardware.sim import SimCamera, SimRobot, SimTurntable, SimWorld
     from tdof20.sim.render import SimRenderer
+    from tdof20.sim.sensor import SensorModel
 
     s = cfg.sim
     T_tcp_cam = hand_eye(cfg)  # what session.json records, and what the arm targets are planned with
@@ -52,7 +53,8 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     targets = arm_targets(cfg)
     camera = oakd_camera(cfg.camera.width, cfg.camera.height)
     renderer = SimRenderer(get_scene(cfg.session.scene_id, layout.table_radius), camera, layout,
-                           [ur5_fk(q) @ T_tcp_cam_true for q in targets], seed=s.seed, clutter=s.clutter)
+                           [ur5_fk(q) @ T_tcp_cam_true for q in targets], sensor=SensorModel(depth_bias=s.depth_bias),
+                           seed=s.seed, clutter=s.clutter)
     table = TableMotion(cfg.turntable.direction, s.step_jitter_deg, s.seed)
     world = SimWorld(renderer, targets, faults, table)
 
@@ -64,7 +66,8 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
 
         write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress, table=table,
                     rig={"T_tcp_cam": T_tcp_cam_true, "T_tcp_cam_recorded": T_tcp_cam, "clutter": list(s.clutter),
-                         "hand_eye_error_mm": s.hand_eye_error_mm, "hand_eye_error_deg": s.hand_eye_error_deg},
+                         "hand_eye_error_mm": s.hand_eye_error_mm, "hand_eye_error_deg": s.hand_eye_error_deg,
+                         "depth_bias": s.depth_bias},
                     phases=tuple(cfg.session.phases))
 
     return Rig(SimRobot(world), SimTurntable(world), SimCamera(world), set_phase, after_capture, world)

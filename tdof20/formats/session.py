@@ -407,6 +407,19 @@ class RawSession:
         info = SessionInfo.from_dict(read_json(f), f)
         return cls(f.parent, info, read_journal(f.parent))
 
+    def with_depth_factor(self, factor: float) -> "RawSession":
+        """The same session read with its camera's ``depth_scale`` multiplied by ``factor`` (a depth
+        correction found by annotation: every depth it loads, in mm, is ``factor`` times the
+        file's reading). ``factor`` 1 gives this session itself."""
+        if factor == 1.0:
+            return self
+        cam = self.info.camera
+        info = copy.copy(self.info)
+        info.camera = PinholeCamera(cam.K, cam.width, cam.height, cam.depth_scale * float(factor))
+        out = copy.copy(self)
+        out.info = info
+        return out
+
     # --- what is there ---------------------------------------------------------------------------
     def frames(self, phase: str | None = None) -> list[FrameKey]:
         """Captured frames (phase, arm, step), in plan order (phase, then arm, then step)."""

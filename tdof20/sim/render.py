@@ -354,6 +354,8 @@ class SimRenderer:
         else:
             glass = (geo["label"] >= 0).reshape(h, w)
             z_sensor = self._glass_depth(z_obj.reshape(h, w), bg, glass, box, rng, noise, uniform)
+        if self.sensor.depth_bias != 1.0:  # a camera off in scale: every depth it reports, glass too
+            z_sensor = z_sensor * np.float32(self.sensor.depth_bias)
         return cam.mm_to_depth(z_sensor), z_true
 
     def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ class SensorModel:
     rim_px: int = 3                    # width of the band of flying pixels at glass silhouettes
     flying_fraction: float = 0.5       # fraction of rim pixels that fly between glass and background
     rgb_sigma: float = 2.0             # colour noise, 8-bit levels
+    depth_bias: float = 1.0            # reported / true depth: a camera whose depth reads 2 % long is 1.02
 
     def validate(self) -> "SensorModel":
         for name in ("glass_missing", "glass_behind", "edge_dropout", "flying_fraction"):
@@ -38,6 +39,8 @@ class SensorModel:
         for name in ("baseline_mm", "min_depth_mm", "max_depth_mm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"sensor.{name} must be > 0")
+        if not 0.8 <= self.depth_bias <= 1.25:
+            raise ValueError(f"sensor.depth_bias must be in [0.8, 1.25] (reported / true depth), got {self.depth_bias}")
         for name in ("disparity_sigma_px", "glass_sigma_mm", "rgb_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"sensor.{name} must be >= 0")
