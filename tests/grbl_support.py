@@ -9,7 +9,10 @@ or a homing before the test) unless a test asks for the power-up lock."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
+import serial
 
 from tdof20.capture.hardware.grbl import GrblTurntable
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
@@ -43,3 +46,34 @@ def table_for(emu: GrblEmulator, timeout_s: float = 1.0, **kw) -> GrblTurntable:
     kw.setdefault("feed_deg_per_s", 360.0)
     kw.setdefault("poll_s", 0.02)
     return GrblTurntable(emu.port, timeout_s=timeout_s, **kw)
+
+
+class Link:
+    """A raw serial conversation with the emulator, with the arrival time of every line."""
+
+    def __init__(self, port: str):
+        self.ser = serial.Serial(port, 115200, timeout=0.02)
+        self.buf = bytearray()
+
+    def lines(self, seconds: float, until=None) -> list[tuple[float, str]]:
+        got, end = [], time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.buf.extend(self.ser.read(256))
+            while b"\n" in self.buf:
+                line, _, rest = bytes(self.buf).partition(b"\n")
+                self.buf[:] = rest
+                if line.strip():
+                    got.append((time.monotonic(), line.strip().decode()))
+                    if until is not None and until(got[-1][1]):
+                        return got
+        return got
+
+    def send(self, data: bytes) -> None:
+        self.ser.write(data)
+
+    def ask(self, line: str) -> list[str]:
+        self.send(line.encode() + b"\n")
+        return [s for _, s in self.lines(1.0, lambda s: s == "ok" or s.startswith("error:"))]
+
+    def close(self) -> None:
+        self.ser.close()

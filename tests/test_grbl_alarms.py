@@ -9,14 +9,13 @@ import threading
 import time
 
 import pytest
-import serial
 
 from tdof20.capture.hardware.grbl import GrblAlarm, GrblTurntable, parse_status
 from tdof20.capture.hardware.grbl_emulator import GrblEmulator
 from tdof20.capture.hardware.grbl_timing import homing_worst_case_s, move_time
 from tdof20.capture.hardware.interfaces import HardwareError
 from tdof20.capture.hardware.grbl_emulator import LimitSwitch
-from tests.grbl_support import ACCEL, SLOW_HOMING, SPEED, emu_factory  # noqa: F401 (a fixture)
+from tests.grbl_support import ACCEL, SLOW_HOMING, SPEED, Link, emu_factory  # noqa: F401 (a fixture)
 from tests.grbl_support import table_for as grbl_table_for
 
 pytestmark = pytest.mark.timeout(30)
@@ -276,37 +275,6 @@ def test_parse_status_of_grbl_09():
 
 
 # ---------------------------------------------------------------------- the emulator, byte by byte
-
-class Link:
-    """A raw serial conversation with the emulator, with the arrival time of every line."""
-
-    def __init__(self, port: str):
-        self.ser = serial.Serial(port, 115200, timeout=0.02)
-        self.buf = bytearray()
-
-    def lines(self, seconds: float, until=None) -> list[tuple[float, str]]:
-        got, end = [], time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.buf.extend(self.ser.read(256))
-            while b"\n" in self.buf:
-                line, _, rest = bytes(self.buf).partition(b"\n")
-                self.buf[:] = rest
-                if line.strip():
-                    got.append((time.monotonic(), line.strip().decode()))
-                    if until is not None and until(got[-1][1]):
-                        return got
-        return got
-
-    def send(self, data: bytes) -> None:
-        self.ser.write(data)
-
-    def ask(self, line: str) -> list[str]:
-        self.send(line.encode() + b"\n")
-        return [s for _, s in self.lines(1.0, lambda s: s == "ok" or s.startswith("error:"))]
-
-    def close(self) -> None:
-        self.ser.close()
-
 
 def test_emulator_reset_during_homing_pause_late_ok_banner(emu_factory):
     emu = emu_factory(settings=SLOW_HOMING)

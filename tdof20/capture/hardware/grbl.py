@@ -157,6 +157,7 @@ class GrblTurntable(GrblLink, Turntable):
         self._reset_context = ""         # why the controller was reset (for the message after it)
         self.version: str | None = None  # from the banner
         self._lock_msg = False           # "[MSG:'$H'|'$X' to unlock]" seen
+        self._check_limits = False       # "[MSG:Check Limits]" seen: a reset found a limit switch pressed
         self._collect_alarms = False     # record ALARM lines instead of raising (handshake, stop)
         self._expect_reset = False       # a banner is expected (connect, stop(), the driver's resets)
         self._banner_seen = False
@@ -194,19 +195,29 @@ class GrblTurntable(GrblLink, Turntable):
             self._check_version(st)
             if st.state in ("Run", "Jog", "Home", "Hold", "Door"):
                 st = self._wait_idle(st)
+            if st.state != "Alarm":
+                self._check_usable(st, "at connect")
+            self._read_settings()             # $21 (hard limits) tells what a pressed switch means
             if st.state == "Alarm":
                 code = self._alarm if self._alarm is not None else st.substate
-                what = None
+                what = todo = None
                 if self._reset_context and code is None:
                     what = ("it answered nothing until the driver reset it (ctrl-x): locked by a hard or soft "
                             "limit alarm, or busy homing")
+                elif code is None and self._check_limits:
+                    what = "GRBL started with a limit switch pressed and locked itself ([MSG:Check Limits])"
+                elif code is None and not self._banner_seen:
+                    what = ("GRBL is in its alarm lock from before this connection: an earlier alarm, whose "
+                            "ALARM line went to an earlier host, or its power-up homing lock (this board did not "
+                            "reset when its port opened)")
+                pressed = self._pressed_limits(st)
+                context = f"at connect; {pressed}" if pressed else "at connect"
+                if pressed:
+                    todo = self._switch_todo()
                 if not self.home_on_connect:
-                    raise GrblAlarm(self.device, code, "at connect", what=what)
-                log.warning("%s: ALARM at connect (%s); homing is planned", self.device,
-                            what or describe_alarm(code))
-            else:
-                self._check_usable(st, "at connect")
-            self._read_settings()
+                    raise GrblAlarm(self.device, code, context, what=what, todo=todo)
+                log.warning("%s: ALARM at connect (%s%s); homing is planned", self.device,
+                            what or describe_alarm(code), f"; {pressed}" if pressed else "")
             if st.state != "Alarm":
                 self._set_modes()
             self._refresh_wco()
@@ -331,6 +342,11 @@ class GrblTurntable(GrblLink, Turntable):
         by ``ALARM:1``/``2`` is reset first. The machine position survives; the G92 offset is re-applied."""
         self._ready(allow_alarm=True, reset_if_locked=True)
         deadline = time.monotonic() + self.timeout_s
+        pressed = self._pressed_limits(self._query_status(deadline))
+        if pressed:
+            # GRBL's limit interrupt fires on any pin change: after $X the first step off the switch
+            # trips ALARM:1 again (and the position with it), so do not unlock into that
+            raise GrblAlarm(self.device, self._alarm, f"{pressed}, so $X was not sent", todo=self._switch_todo())
         self._command("$X", deadline=deadline)
         self._alarm = None
         self._set_modes(deadline)
@@ -414,7 +430,7 @@ class GrblTurntable(GrblLink, Turntable):
         deadline = time.monotonic() + self.timeout_s
         self._buf.clear()
         self._responses.clear()
-        self._alarm, self._lock_msg, self._banner_seen = None, False, False
+        self._alarm, self._lock_msg, self._banner_seen, self._check_limits = None, False, False, False
         self._needs_resync, self._reference_lost, self._saved_wco = False, False, None
         self._alarm_at, self._critical, self._homing, self._reset_context = None, False, False, ""
         self.version = None
@@ -488,7 +504,7 @@ class GrblTurntable(GrblLink, Turntable):
         if not self._needs_resync:
             self._saved_wco = self._wco
         self._collect_alarms = self._expect_reset = True
-        self._banner_seen = False
+        self._banner_seen = self._check_limits = False
         try:
             self._write(b"\x18")
             self._wait(lambda: self._banner_seen, deadline, "GRBL's banner after a reset (ctrl-x)")
@@ -571,6 +587,24 @@ class GrblTurntable(GrblLink, Turntable):
             raise HardwareError(self.device, f"GRBL is {why.get(st.state, f'busy ({st.state})')} at connect; "
                                 "is another program driving it?")
         return st
+
+    def _pressed_limits(self, st: GrblStatus) -> str:
+        """Words for limit switches GRBL reports pressed (``Pn:``, or its ``[MSG:Check Limits]``) while
+        hard limits are on (``$21=1``); ``""`` when none is, or hard limits are off (then a pressed
+        switch is only an input)."""
+        pins = st.limit_pins()
+        hard = int(self.settings.get(21, 1 if self._check_limits else 0))
+        if not hard or not (pins or self._check_limits):
+            return ""
+        which = f"the {'/'.join(pins)} limit switch is pressed (Pn:{st.pins})" if pins else \
+            "a limit switch is pressed ([MSG:Check Limits])"
+        return f"{which} with hard limits on ($21=1)"
+
+    @staticmethod
+    def _switch_todo() -> str:
+        return ("home the table (the homing cycle starts from the switch and pulls off it: home() or [turntable] "
+                "home = true), or free the switch by hand; $X is not enough: while hard limits are on, the first "
+                "step off the switch trips ALARM:1 again")
 
     def _check_usable(self, st: GrblStatus, context: str) -> None:
         if st.state == "Check":

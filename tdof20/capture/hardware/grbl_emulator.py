@@ -225,6 +225,22 @@ class GrblEmulator(GrblLimits, GrblCommands):
             self._enter_alarm(int(code))
 
     @property
+    def physical_position(self) -> tuple[float, ...]:
+        """Where the axes really stand, units from where they stood at :meth:`start` (the switches'
+        frame; survives resets and homing, unlike the machine position)."""
+        with self._lock:
+            self._tick(time.monotonic())
+            return tuple(z + m for z, m in zip(self._phys0, self._mpos))
+
+    def homing_plan(self) -> tuple[float, int | None]:
+        """How long a ``$H`` from here would take, seconds, and the alarm it would end in (``None``:
+        homed), from the settings and the switches."""
+        with self._lock:
+            self._tick(time.monotonic())
+            h = self._plan_homing(0.0)
+            return h.until, h.alarm
+
+    @property
     def pins(self) -> str:
         """The pressed limit pins (``"X"``, ``""``), as the status report's ``Pn:`` lists them."""
         with self._lock:
@@ -311,12 +327,12 @@ class GrblEmulator(GrblLimits, GrblCommands):
         return self._seg is not None or bool(self._queue)
 
     def _state_text(self) -> str:
+        if self._homing is not None:           # a $H from the alarm lock is Home until it ends
+            return "Home"
         if self._alarm or self._critical:
             return "Alarm"
         if self._sleep:
             return "Sleep"
-        if self._homing is not None:
-            return "Home"
         if self._hold == "decel":
             return "Hold:1"
         if self._hold == "held":

@@ -242,6 +242,8 @@ class GrblLink:
         if line.startswith("[MSG:"):
             if "unlock" in line.lower():
                 self._lock_msg = True
+            if "check limits" in line.lower():        # a reset with a limit switch pressed, hard limits on
+                self._check_limits = True
             if "reset to continue" in line.lower():   # after ALARM:1/2: locked until a soft reset
                 self._critical, self._alarm_at = True, None
             log.info("%s: %s", self.device, line)

@@ -113,17 +113,20 @@ class GrblAlarm(HardwareError):
     """GRBL is in an alarm (``code`` None: the power-up homing lock). A person must act.
 
     ``locked``: GRBL is locked until a soft reset (``ALARM:1``/``2``), so the message says to reset
-    it rather than to unlock it. ``what``: replaces the description of a code-less alarm."""
+    it rather than to unlock it. ``what``: replaces the description of a code-less alarm; ``todo``:
+    what to do, where the usual advice would mislead."""
 
     def __init__(self, device: str, code: int | None, context: str = "", *, locked: bool = False,
-                 what: str | None = None):
+                 what: str | None = None, todo: str | None = None):
         self.code = code
         self.locked = locked
         if code is not None:
             head = f"ALARM:{code} ({describe_alarm(code)})"
         else:
             head = f"ALARM ({what or describe_alarm(None)})"
-        if locked:
+        if todo is not None:
+            pass
+        elif locked:
             todo = ("GRBL is locked until it is reset and ignores '?' and $X: clear the cause, then reset and "
                     "home the table (home() and [turntable] home = true do both; by hand: ctrl-x, then $H)")
         else:
@@ -144,6 +147,11 @@ class GrblStatus:
     feed: float | None = None                    # current feed, units/min
     raw: str = ""
     legacy: bool = False                         # GRBL 0.9's comma format
+    pins: str = ""                               # Pn: the active input pins (X, Y, Z limits; P, D, H, R, S)
+
+    def limit_pins(self) -> str:
+        """The pressed limit switches among the pins (``"X"``, ``"XZ"``, ``""``)."""
+        return "".join(c for c in self.pins if c in "XYZABC")
 
 
 def parse_status(line: str) -> GrblStatus | None:
@@ -171,8 +179,12 @@ def parse_status(line: str) -> GrblStatus | None:
     except ValueError:
         substate = None
     values: dict = {}
+    pins = ""
     for f in fields[1:]:
         key, _, val = f.partition(":")
+        if key == "Pn":
+            pins = val
+            continue
         if key in ("MPos", "WPos", "WCO", "FS", "F"):
             try:
                 values[key] = tuple(float(v) for v in val.split(","))
@@ -180,4 +192,4 @@ def parse_status(line: str) -> GrblStatus | None:
                 return None
     feed = values.get("FS", values.get("F", (None,)))[0]
     return GrblStatus(state, substate, values.get("MPos"), values.get("WPos"), values.get("WCO"), feed, line,
-                      legacy)
+                      legacy, pins)
