@@ -216,6 +216,43 @@ def test_bad_speed_acceleration_before_any_motion(make):
     assert ctl.moveJ_calls == []
 
 
+@pytest.mark.parametrize("value, words", [
+    ("0.0", "must be from robot.acceleration (0.5: a stop no slower than the move's own ramp) to 40 rad/s^2, got 0.0"),
+    ("0.2", "got 0.2"),                               # below the move's own acceleration (0.5)
+    ("100.0", "to 40 rad/s^2, got 100.0"),
+    ('"fast"', "must be a number"),
+    ("nan", "must be a number"),
+])
+def test_stop_deceleration_of_the_rig_config_is_checked_in_one_line(tmp_path, value, words):
+    from pathlib import Path
+
+    from tdof20.capture import load_config
+
+    text = (Path(__file__).resolve().parents[1] / "examples/real_rig.toml").read_text()
+    assert text.count("\nstop_deceleration = 2.0 ") == 1
+    path = tmp_path / "rig.toml"
+    path.write_text(text.replace("\nstop_deceleration = 2.0 ", f"\nstop_deceleration = {value} "))
+    with pytest.raises(TdofError) as ei:
+        load_config(path)
+    msg = str(ei.value)
+    assert msg.startswith(f"{path}: robot.stop_deceleration: ") and words in msg and "\n" not in msg
+
+
+def test_stop_deceleration_default_and_the_drivers_own_check():
+    from tdof20.capture import config_from_dict
+    from tdof20.capture.hardware.registry import vendor
+
+    cfg = config_from_dict({"robot": {"backend": "ur_rtde", "positions": [list(Q1)]},
+                            "turntable": {"backend": "grbl"}, "camera": {"backend": "oakd"},
+                            "session": {"objects": [3]}, "hand_eye": {"T_tcp_cam": list(np.eye(4).ravel())}},
+                           "rig.toml")
+    assert cfg.robot.stop_deceleration == 2.0      # ur_rtde's own stopJ default
+    assert vendor("robot", "ur_rtde").make(cfg.robot).stop_deceleration == 2.0
+    for bad in (0.0, -1.0, 41.0, float("nan")):
+        with pytest.raises(ValueError, match="stop_deceleration must be in"):
+            URRobot(HOST, stop_deceleration=bad)
+
+
 def test_not_connected(make):
     ctl, robot = make(connect=False)
     with pytest.raises(HardwareError, match="not connected"):

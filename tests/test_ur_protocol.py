@@ -92,6 +92,41 @@ def test_a_timed_out_move_stops_the_arm_and_says_where_it_stands(rig):
     np.testing.assert_array_equal(robot.state().q, POSITIONS[1])
 
 
+def test_the_rigs_stop_deceleration_is_what_stopj_brakes_at(tmp_path):
+    """robot.stop_deceleration of the rig's config (examples/real_rig.toml, set to 8 rad/s^2) goes
+    from the driver the registry builds through ur_rtde's stopJ to the controller, which brakes at
+    it: a timed-out move at 1 rad/s stands still 0.125 s after the stop (the default 2: 0.5 s)."""
+    from tdof20.capture import load_config
+    from tdof20.capture.hardware.registry import vendor
+
+    text = (ROOT / "examples/real_rig.toml").read_text()
+    assert 'host = "192.168.1.10"' in text and "\nstop_deceleration = 2.0 " in text
+    path = tmp_path / "rig.toml"
+    path.write_text(text.replace('host = "192.168.1.10"', f'host = "{HOST}"')
+                    .replace("\nstop_deceleration = 2.0 ", "\nstop_deceleration = 8.0 "))
+    cfg = load_config(path)
+    assert cfg.robot.stop_deceleration == 8.0
+    emu = EmulatedController(q0=tuple(POSITIONS[0]))
+    robot = vendor("robot", cfg.robot.backend).make(cfg.robot)
+    try:
+        robot.connect()
+        target = POSITIONS[0] + np.array([0, 0, 0, 0, 0, 1.5])
+        with pytest.raises(HardwareError) as ei:
+            robot.move_joints(target, speed=1.0, acceleration=4.0, timeout_s=0.5)
+        assert "the arm was stopped (stopJ at 8 rad/s^2" in str(ei.value)
+        (t_stop, dec), = emu.get("stops")                # what the control script read from its registers
+        assert dec == 8.0
+        after = [(t, v) for t, _, v in emu.get("history") if t >= t_stop]
+        assert after[0][1] == pytest.approx(1.0, abs=0.05)          # cruising at 1 rad/s when told
+        t_still = next(t for t, v in after if v == 0.0)
+        assert t_still - t_stop == pytest.approx(1.0 / 8.0, abs=0.02)
+        braking = np.array([(t, v) for t, v in after if 0.1 < v < 0.9])
+        assert np.polyfit(braking[:, 0], braking[:, 1], 1)[0] == pytest.approx(-8.0, rel=0.05)
+    finally:
+        robot.close()
+        emu.close()
+
+
 def test_a_stalled_arm_times_out_stopped(rig):
     emu, robot = rig()
     emu.set(stalled=True)

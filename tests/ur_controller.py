@@ -253,6 +253,7 @@ class URControllerEmulator:
         self.dashboard_log: list[str] = []
         self.unsupported: set[int] = set()
         self.history: list[tuple[float, np.ndarray, float]] = []  # (t, q, leading speed) every cycle
+        self.stops: list[tuple[float, float]] = []    # (controller time, deceleration) of each stopl/stopj taken
         # the emulated program
         self._main: Iterator | None = None
         self._threads: dict[str, Iterator] = {}
@@ -506,6 +507,7 @@ class URControllerEmulator:
             return True
         elif cmd in (33, 34):                           # stopl / stopj
             dec, asynchronous = d[0], i[1]
+            self.stops.append((self.timestamp, float(dec)))
             stop_move = True
             if "stop" in self._threads:
                 stop_move = False

@@ -3,7 +3,7 @@ the simulator. Any mistake is one line naming the file and the option (before an
 
     [session]    scene_id, objects, phases, retries
     [hand_eye]   T_tcp_cam
-    [robot]      backend ("sim" | "ur_rtde"), host, speed, acceleration, timeouts, positions
+    [robot]      backend ("sim" | "ur_rtde"), host, speed, acceleration, timeouts, stop_deceleration, positions
     [robot.limits] joint_min, joint_max, tcp_min, tcp_max
     [turntable]  backend ("sim" | "grbl"), port, baudrate, axis, units_per_degree, feed, step_deg, steps, settle_s, ...
     [camera]     backend ("sim" | "oakd"), width, height, fps, device_id, timeout_s
@@ -51,6 +51,7 @@ class RobotConfig:
     connect_timeout_s: float = 5.0
     move_timeout_s: float = 60.0
     joint_tolerance_rad: float = 0.002    # arrival check after each move
+    stop_deceleration: float = 2.0        # stopJ deceleration when a move is stopped (timeout, Ctrl-C), rad/s^2
     positions: tuple[tuple[float, ...], ...] = ()  # arm positions as joint vectors (rad); sim: computed if empty
     limits: Limits = field(default_factory=Limits)
 
@@ -176,6 +177,9 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     for k in ("speed", "acceleration", "connect_timeout_s", "move_timeout_s", "joint_tolerance_rad"):
         if not getattr(r, k) > 0:
             _fail(src, f"robot.{k}", f"must be > 0, got {getattr(r, k)}")
+    if not r.acceleration <= r.stop_deceleration <= 40:
+        _fail(src, "robot.stop_deceleration", f"must be from robot.acceleration ({r.acceleration:g}: a stop no slower "
+                                              f"than the move's own ramp) to 40 rad/s^2, got {r.stop_deceleration}")
     if r.speed > 3.2:
         _fail(src, "robot.speed", f"{r.speed} rad/s exceeds the UR5's joint speed limit (3.14 rad/s); degrees?")
     if not r.positions and r.backend != "sim":

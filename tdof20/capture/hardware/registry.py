@@ -42,7 +42,8 @@ class Vendor:
 
 
 def _ur(cls: type, r: Any) -> Any:
-    return cls(r.host, connect_timeout_s=r.connect_timeout_s, joint_tolerance_rad=r.joint_tolerance_rad)
+    return cls(r.host, connect_timeout_s=r.connect_timeout_s, joint_tolerance_rad=r.joint_tolerance_rad,
+               stop_deceleration=r.stop_deceleration)
 
 
 def _grbl(cls: type, t: Any) -> Any:

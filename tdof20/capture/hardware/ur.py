@@ -303,6 +303,8 @@ class URRobot(Robot):
         self.poll_s = float(poll_s)
         self.stale_s = float(stale_s)
         self.stop_deceleration = float(stop_deceleration)
+        if not (0 < self.stop_deceleration <= MAX_JOINT_ACCEL):   # robot.stop_deceleration, checked in the config too
+            raise ValueError(f"stop_deceleration must be in (0, {MAX_JOINT_ACCEL:g}] rad/s^2, got {stop_deceleration!r}")
         self.resume_timeout_s = float(resume_timeout_s)
         self.rtde_port = int(rtde_port)
         self.dashboard_port = int(dashboard_port)
