@@ -95,9 +95,9 @@ def check_upgraded(url: str, root, data) -> None:
     cfg = ServerConfig(dataset=root, data=data, db=url)
     client = TestClient(create_app(cfg))  # the server starts: the database is upgraded in place
     with engine.connect() as c:
-        assert MigrationContext.configure(c).get_current_revision() == "0002"
+        assert MigrationContext.configure(c).get_current_revision() == "0003"
         assert compare_metadata(MigrationContext.configure(c), metadata) == []  # = a new database's schema
-        assert c.execute(select(meta.c.value).where(meta.c.key == "schema_version")).scalar_one() == "2"
+        assert c.execute(select(meta.c.value).where(meta.c.key == "schema_version")).scalar_one() == "3"
         rows = c.execute(select(submissions.c.uid, submissions.c.part, submissions.c.status)
                          .order_by(submissions.c.id)).all()
     assert [tuple(r) for r in rows] == [("aaaaaaaaaaaaaaaa", "test", "done"), ("bbbbbbbbbbbbbbbb", "test", "queued")]
@@ -160,7 +160,7 @@ def test_processes_starting_together_upgrade_once(dataset, tmp_path):
     engine = make_engine(url)
     with engine.connect() as c:
         assert c.execute(text("SELECT count(*) FROM alembic_version")).scalar_one() == 1
-        assert c.execute(text("SELECT version_num FROM alembic_version")).scalar_one() == "0002"
+        assert c.execute(text("SELECT version_num FROM alembic_version")).scalar_one() == "0003"
     engine.dispose()
 
 
@@ -169,11 +169,11 @@ def test_a_newer_or_foreign_database_is_refused(tmp_path):
     engine = make_engine(url)
     init_db(engine)
     with engine.begin() as c:
-        c.execute(meta.update().where(meta.c.key == "schema_version").values(value="3"))
-    with pytest.raises(TdofError, match="schema version 3, newer than this tdof20's 2: upgrade tdof20"):
+        c.execute(meta.update().where(meta.c.key == "schema_version").values(value="4"))
+    with pytest.raises(TdofError, match="schema version 4, newer than this tdof20's 3: upgrade tdof20"):
         init_db(engine)
     with engine.begin() as c:
-        c.execute(meta.update().where(meta.c.key == "schema_version").values(value="2"))
+        c.execute(meta.update().where(meta.c.key == "schema_version").values(value="3"))
         c.execute(text("UPDATE alembic_version SET version_num = '0099'"))
     with pytest.raises(TdofError, match=r"schema \(0099\) is unknown to this tdof20"):
         init_db(engine)

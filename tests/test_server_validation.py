@@ -63,7 +63,7 @@ def test_per_image_errors_only_for_a_validation_part(val_server):
     assert t["status"] == "done" and "per_image" not in t["result"]
     with s.engine.begin() as c:
         stored = json.loads(c.execute(select(submissions.c.result).where(submissions.c.uid == tuid)).scalar_one())
-    assert "per_image" not in stored and set(stored) == {"summary", "warnings", "object_names", "scene_names"}
+    assert "per_image" not in stored and set(stored) == {"summary", "conditions", "warnings", "object_names", "scene_names"}
     assert set(stored["summary"]) - {"proj_px"} == {"objects", "mean", "all", "scenes"}  # aggregates (and the
     assert all("im_id" not in json.dumps(v) for v in stored["summary"].values())  # 2D threshold) only
     answers = [alice.get(f"/s/{tuid}").text, s.client.get(f"/s/{tuid}").text, alice.get("/mine").text,

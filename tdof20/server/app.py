@@ -33,6 +33,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from tdof20.server import auth, submissions as subs
 from tdof20.server.config import ServerConfig
+from tdof20.server.cells import dataset_version, scorer_version
 from tdof20.server.db import init_db, make_engine
 from tdof20.server.facts import DatasetFacts
 from tdof20.server.figures import figures
@@ -52,6 +53,8 @@ SUBMIT_SCHEMA = {"requestBody": {"required": True, "content": {"multipart/form-d
     "properties": {"file": {"type": "string", "format": "binary"}, "method": _TEXT, "split": _TEXT,
                    "part": {"type": "string", "enum": ["test", "val"], "default": "test"}, "description": _TEXT,
                    "authors": _TEXT, "hardware": _TEXT, "time_per_image": _TEXT, "training_data": _TEXT,
+                   "paper": {"type": "string", "description": "a link (http/https)"},
+                   "code": {"type": "string", "description": "a link (http/https)"},
                    "public": {"type": "boolean", "default": False}}}}}}}
 
 
@@ -201,7 +204,16 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     subs.sweep_reservations(engine)
     facts = DatasetFacts(cfg.dataset)
     templates = Jinja2Templates(directory=str(TEMPLATES))
+    templates.env.filters["utc"] = subs.utc
     notes = derivable_notes(Path(cfg.dataset))
+    scorer = scorer_version()
+
+    def current() -> dict[str, dict]:
+        """The versions a result computed now would be on, per protocol (the page says whether a
+        score is on them; ``tdof20 serve rescore`` scores the others again)."""
+        held = subs.held_parts(engine)
+        return {s: {"scorer": scorer, "dataset": dataset_version(cfg.dataset, s, (held.get(s) or {}).get("digest"))}
+                for s in facts.splits}
     signin_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
     token_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
     app = FastAPI(title="tdof20 benchmark server", version="1", docs_url=None, redoc_url=None)
@@ -279,7 +291,8 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         return subs.Fields(method=form["method"], split=form["split"], part=form.get("part", "test"),
                            description=form.get("description", ""), authors=form.get("authors", ""),
                            hardware=form.get("hardware", ""), time_per_image=form.get("time_per_image", ""),
-                           training_data=form.get("training_data", ""), public=BOOLEANS[public])
+                           training_data=form.get("training_data", ""), paper=form.get("paper", ""),
+                           code=form.get("code", ""), public=BOOLEANS[public])
 
     async def take(request: Request, user: dict, csrf: bool = False) -> dict:
         """Reserve the slot (daily limit, uploads at once) before reading a byte of the body, then
@@ -329,27 +342,48 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
 
     @app.get("/api/submissions")
     def api_mine(user: dict = Depends(api_user)) -> list[dict]:
-        return subs.mine(engine, user)
+        """The caller's submissions, newest first (a queued one with ``queue``: position and ETA)."""
+        return subs.mine(engine, user, current())
 
     @app.get("/api/submissions/{uid}")
     def api_get(uid: str, user: dict = Depends(api_user)) -> dict:
-        return subs.get(engine, uid, user)
+        """One submission: ``status``; while queued or scored, ``queue`` (``position``, ``ahead``,
+        ``workers``, ``typical_s``, ``eta_s``); once scored, ``result`` as the disclosure rule shows
+        it and ``version`` (the scorer and dataset versions, ``current``: whether they are this server's)."""
+        return subs.get(engine, uid, user, current())
 
     @app.post("/api/submissions/{uid}/withdraw")
     def api_withdraw(uid: str, user: dict = Depends(api_user)) -> dict:
         return subs.withdraw(engine, uid, user)
 
     @app.get("/api/leaderboard")
-    def api_leaderboard(split: str, metric: str = "add_s") -> list[dict]:
-        return subs.leaderboard(engine, split, metric)
+    def api_leaderboard(split: str, metric: str = "add_s", phase: str = "test") -> list[dict]:
+        """Public scored submissions of a phase, best first (``phase``: val, test or final; ``rank``,
+        ``score`` as shown, ``score_step``, ``score_withheld``, the method's description and links)."""
+        return subs.leaderboard(engine, split, metric, phase, current())
+
+    @app.get("/api/leaderboard.csv", response_class=Response)
+    def api_leaderboard_csv(split: str, metric: str = "add_s", phase: str = "test") -> Response:
+        """The same leaderboard as CSV (scores in %, as shown)."""
+        if split not in facts.splits:
+            raise Refused(400, f"split must be one of {', '.join(facts.splits)}")
+        text = subs.leaderboard_csv(subs.leaderboard(engine, split, metric, phase, current()), metric, phase)
+        return Response(text, media_type="text/csv; charset=utf-8", headers={
+            "Content-Disposition": f'attachment; filename="tdof20_{split}_{phase}_{metric}.csv"'})
 
     # ------------------------------------------------------------------ pages
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    def home(request: Request, split: str | None = None, metric: str = "add_s"):
+    def home(request: Request, split: str | None = None, metric: str = "add_s", phase: str = "test"):
         split = split if split in facts.splits else facts.splits[0]
-        rows = subs.leaderboard(engine, split, metric)
-        return page(request, "leaderboard.html", {"rows": rows, "split": split, "metric": metric,
-                                                  "metrics": subs.LEADERBOARD_METRICS,
+        phase = phase if phase in subs.PHASES else "test"
+        held = subs.held_parts(engine).get(split)
+        if phase == "final" and not (held or {}).get("revealed"):
+            rows = []
+        else:
+            rows = subs.leaderboard(engine, split, metric, phase, current())
+        return page(request, "leaderboard.html", {"rows": rows, "split": split, "metric": metric, "phase": phase,
+                                                  "metrics": subs.LEADERBOARD_METRICS, "held": held,
+                                                  "has_val": "val" in facts.parts(split),
                                                   "derivable": notes.get(split)})
 
     @app.get("/signin", response_class=HTMLResponse, include_in_schema=False)
@@ -401,13 +435,14 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     @app.get("/mine", response_class=HTMLResponse, include_in_schema=False)
     def mine_page(request: Request):
         user = need_page_user(request)
-        return page(request, "mine.html", {"rows": subs.mine(engine, user),
+        return page(request, "mine.html", {"rows": subs.mine(engine, user, current()),
                                            "quota": subs.quota(engine, user, cfg.daily_limit)})
 
     @app.get("/s/{uid}", response_class=HTMLResponse, include_in_schema=False)
     def submission_page(request: Request, uid: str):
-        s = subs.get(engine, uid, page_user(request))
-        return page(request, "submission.html", {"s": s, "plots": plots_of(s)})
+        s = subs.get(engine, uid, page_user(request), current())
+        return page(request, "submission.html", {"s": s, "plots": plots_of(s),
+                                                 "held": subs.held_parts(engine).get(s["split"])})
 
     @app.post("/s/{uid}/withdraw", include_in_schema=False)
     def withdraw_page(request: Request, uid: str, csrf: str = Form("")):

@@ -1,6 +1,7 @@
 """The server's commands, for the main ``tdof20`` app to mount: the ``serve`` group (run the
-server; ``worker``; ``user add|token|revoke|list``), ``submit`` and ``publish`` (``tdof20 dataset
-publish``). ``app`` holds all three for a quick mount and for tests."""
+server; ``worker``; ``requeue``; ``hold-back``, ``reveal`` and ``rescore``; ``user
+add|token|revoke|list``), ``submit`` and ``publish`` (``tdof20 dataset publish``). ``app`` holds
+all three for a quick mount and for tests."""
 
 from __future__ import annotations
 
@@ -91,6 +92,64 @@ def requeue_command(uid: Optional[str] = typer.Argument(None, help="the failed s
                f"{' ...' if len(uids) > 20 else ''}")
 
 
+@serve_app.command("hold-back")
+def hold_back_command(split: str = typer.Option(..., help="the protocol whose test images are split"),
+                      dataset: Path = typer.Option(..., help="the full dataset (its test lists)"),
+                      fraction: float = typer.Option(0.5, help="share of the test images held back"),
+                      by: str = typer.Option("image", help="image (within every scene) or scene"),
+                      data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+                      db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Hold back part of a protocol's test images for the final private leaderboard (chosen once,
+    from a secret seed, recorded in the database): the test phase then shows the other part only;
+    ``rescore`` scores earlier results again on the two parts."""
+    from tdof20.dataset.layouts import open_dataset
+    from tdof20.formats.io import read_json
+    from tdof20.server.db import hold_back
+
+    ds = open_dataset(dataset)
+    targets = read_json(ds.scoring_targets_path(split)) if ds.scoring_targets_path(split).is_file() else []
+    frames = sorted({(int(t["scene_id"]), int(t["im_id"])) for t in targets})
+    if not frames:
+        raise TdofError(f"{split} has no test targets in {dataset}")
+    part = hold_back(_engine(data, db), split, frames, fraction, by)
+    typer.echo(f"held back {part['n_images']} of {len(frames)} {split} test images (by {part['by']}); "
+               f"run tdof20 serve rescore --dataset {dataset} for results scored before")
+
+
+@serve_app.command("reveal")
+def reveal_command(split: str = typer.Option(..., help="the protocol whose final leaderboard is shown"),
+                   data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+                   db: Optional[str] = typer.Option(None, help=DB_HELP)) -> None:
+    """Reveal a protocol's final leaderboard: the held-back part's scores, on every page and in the API."""
+    from tdof20.server.db import reveal
+
+    part = reveal(_engine(data, db), split)
+    typer.echo(f"revealed the final leaderboard of {split} ({part['n_images']} held-back test images)")
+
+
+@serve_app.command("rescore")
+def rescore_command(dataset: Path = typer.Option(..., help="the full dataset the workers score against"),
+                    data: Path = typer.Option(Path("tdof20_server"), help=DATA_HELP),
+                    db: Optional[str] = typer.Option(None, help=DB_HELP),
+                    everything: bool = typer.Option(False, "--all", help="every scored submission, whatever "
+                                                                           "its versions")) -> None:
+    """Queue again every scored submission whose result is on an older scorer or dataset version
+    (it keeps its shown score until the new one is recorded); the workers score them."""
+    from tdof20.server.cells import dataset_version, scorer_version
+    from tdof20.server.db import held_back_part, rescore
+    from tdof20.server.facts import DatasetFacts
+
+    engine = _engine(data, db)
+    scorer = scorer_version()
+    current = {}
+    for s in DatasetFacts(dataset).splits:
+        part = held_back_part(engine, s)
+        current[s] = {"scorer": scorer, "dataset": dataset_version(dataset, s, part and part["digest"])}
+    uids = rescore(engine, current, everything)
+    typer.echo(f"queued again {len(uids)} submission(s) to score on scorer {scorer}"
+               f"{': ' + ', '.join(uids[:20]) if uids else ''}{' ...' if len(uids) > 20 else ''}")
+
+
 def _auth():
     from tdof20.server import auth  # argon2, sqlalchemy
 
@@ -149,10 +208,12 @@ def submit_command(results: Path = typer.Argument(..., help="a BOP results CSV")
                    hardware: str = typer.Option("", help="the hardware the times were measured on"),
                    time_per_image: str = typer.Option("", help="e.g. '34 ms'"),
                    training_data: str = typer.Option("", help="what the method was trained on"),
+                   paper: str = typer.Option("", help="a link to the paper (http/https)"),
+                   code: str = typer.Option("", help="a link to the code (http/https)"),
                    public: bool = typer.Option(False, help="show it on the leaderboard once scored")) -> None:
     """Submit a results file to a benchmark server."""
     out = submit(results, server, token, method, split, description, authors, hardware, time_per_image,
-                 training_data, public, part)
+                 training_data, public, part, paper, code)
     typer.echo(f"submitted {out['uid']}: {out['status']} ({server.rstrip('/')}/s/{out['uid']})")
     for w in out.get("warnings", []):
         typer.echo(f"warning: {w}")
@@ -169,5 +230,5 @@ def publish_command(root: Path = typer.Argument(..., help="the full dataset (tdo
                f"{info['label_files_dropped']} label files left out")
 
 
-__all__ = ["app", "publish_command", "requeue_command", "serve", "serve_app", "submit_command", "user_app",
-           "worker"]
+__all__ = ["app", "hold_back_command", "publish_command", "requeue_command", "rescore_command", "reveal_command",
+           "serve", "serve_app", "submit_command", "user_app", "worker"]

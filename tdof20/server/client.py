@@ -59,13 +59,13 @@ def refusal_line(e: urllib.error.HTTPError) -> str:
 
 def submit(results: str | Path, server: str, token: str, method: str, split: str, description: str = "",
            authors: str = "", hardware: str = "", time_per_image: str = "", training_data: str = "",
-           public: bool = False, part: str = "test") -> dict:
+           public: bool = False, part: str = "test", paper: str = "", code: str = "") -> dict:
     """Submit a results file; returns the server's status of it ({"uid", "status", ...})."""
     path = Path(results)
     data = read_text(path, "results file").encode()
     fields = {"method": method, "split": split, "part": part, "description": description, "authors": authors,
               "hardware": hardware, "time_per_image": time_per_image, "training_data": training_data,
-              "public": "true" if public else "false"}
+              "paper": paper, "code": code, "public": "true" if public else "false"}
     body, ctype = _multipart(fields, path.name, data)
     url = server.rstrip("/") + "/api/submissions"
     if not url.startswith(("http://", "https://")):

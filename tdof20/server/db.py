@@ -3,7 +3,9 @@ PostgreSQL (``--db postgresql://...``), and the job queue's atomic claim with an
 
 Tables: ``users`` (name, token id, argon2 hash of the token's secret, revoked), ``sessions``
 (page sign-ins: sha256 of the cookie, CSRF token, expiry), ``submissions`` (owner, method and its
-description, protocol, stored file, status, result JSON) and ``jobs`` (one per submission: state
+description and links, protocol, stored file, status, result JSON and the scorer and dataset
+versions it was computed with), ``held_back`` (per protocol: the test images of the final private
+leaderboard, how they were chosen, when revealed) and ``jobs`` (one per submission: state
 queued | running | done | failed | cancelled, the current claim, its lease, attempts, stage).
 ``meta`` records the schema version (for a tdof20 older than alembic's table, which refuses a
 newer one); alembic's ``alembic_version`` the revision.
@@ -38,11 +40,11 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from alembic.util import CommandError
 from sqlalchemy import (Boolean, Column, Engine, Float, ForeignKey, Index, Integer, MetaData, String, Table, Text,
-                        and_, create_engine, event, inspect, or_, select, text, update)
+                        and_, create_engine, event, func, insert, inspect, or_, select, text, update)
 
 from tdof20.errors import TdofError
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 MIGRATIONS = Path(__file__).with_name("migrations")
 PG_LOCK = 2024_0024  # the advisory lock key that serialises upgrades on PostgreSQL
 MAX_ATTEMPTS = 3  # a job whose lease expired this many times fails
@@ -76,6 +78,8 @@ submissions = Table(
     Column("hardware", Text, nullable=False, default=""),
     Column("time_per_image", Text, nullable=False, default=""),
     Column("training_data", Text, nullable=False, default=""),
+    Column("paper", Text, nullable=False, default="", server_default=""),  # a link (http/https) or ""
+    Column("code", Text, nullable=False, default="", server_default=""),
     Column("public", Boolean, nullable=False, default=False),
     Column("filename", String(255), nullable=False),  # as uploaded: shown, never a path
     Column("stored", String(64), nullable=False),  # the file's name in the store
@@ -87,7 +91,20 @@ submissions = Table(
     Column("scored", Float),
     Column("scored_count", Integer, nullable=False, default=0),
     Column("error", Text),  # shown to the owner (no label in it)
-    Column("result", Text))  # the summary JSON, warnings, object and scene names
+    Column("result", Text),  # the summary JSON, warnings, object and scene names
+    Column("scorer_version", String(64)),  # what the result was computed with (None: before versions)
+    Column("dataset_version", String(64)))
+held_back = Table(
+    "held_back", metadata,  # per protocol: the test images of the final (private) leaderboard
+    Column("split", String(32), primary_key=True),
+    Column("by", String(8), nullable=False),  # image | scene
+    Column("fraction", Float, nullable=False),
+    Column("seed", String(64), nullable=False),  # secret: which images are held back is not shown
+    Column("images", Text, nullable=False),  # JSON [[scene_id, im_id], ...]
+    Column("n_images", Integer, nullable=False),
+    Column("digest", String(64), nullable=False),  # sha256 of the image list (part of the dataset version)
+    Column("created", Float, nullable=False),
+    Column("revealed", Float))  # when the operator revealed the final leaderboard (None: not yet)
 jobs = Table(
     "jobs", metadata,
     Column("id", Integer, primary_key=True),
@@ -216,7 +233,8 @@ def claim_job(engine: Engine, worker: str, lease_s: float) -> Claim | None:
             c.execute(update(jobs).where(jobs.c.id == row.id).values(
                 state="running", claim=token, worker=worker[:128], lease_until=now + lease_s,
                 attempts=row.attempts + 1, stage="claimed", started=now))
-            c.execute(update(submissions).where(submissions.c.id == row.submission_id).values(status="scoring"))
+            c.execute(update(submissions).where(and_(submissions.c.id == row.submission_id,
+                                                     submissions.c.status != "done")).values(status="scoring"))
             return Claim(row.id, row.submission_id, token)
 
 
@@ -231,9 +249,11 @@ def heartbeat(engine: Engine, claim: Claim, lease_s: float, stage: str | None = 
         return r.rowcount == 1
 
 
-def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | None) -> bool:
-    """Record the result (or the error) if the claim is still the job's, in one transaction;
-    returns whether it was recorded (False: the lease was lost and another worker has the job)."""
+def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | None,
+               versions: dict | None = None) -> bool:
+    """Record the result (or the error) if the claim is still the job's, in one transaction, with
+    the scorer and dataset ``versions`` it was computed with; returns whether it was recorded
+    (False: the lease was lost and another worker has the job)."""
     now = time.time()
     with engine.begin() as c:
         r = c.execute(update(jobs).where(and_(jobs.c.id == claim.job_id, jobs.c.claim == claim.claim,
@@ -245,6 +265,7 @@ def finish_job(engine: Engine, claim: Claim, result: dict | None, error: str | N
                                                  submissions.c.status != "withdrawn")).values(
             status="done" if error is None else "failed", scored=now, error=error,
             result=None if result is None else json.dumps(result),
+            scorer_version=(versions or {}).get("scorer"), dataset_version=(versions or {}).get("dataset"),
             scored_count=submissions.c.scored_count + 1))
         return True
 
@@ -288,6 +309,90 @@ def requeue(engine: Engine, uid: str | None = None, failed: bool = False) -> lis
         return [r.uid for r in rows]
 
 
+def held_back_part(engine: Engine, split: str) -> dict | None:
+    """The held-back part of ``split``'s test images: {"split", "by", "fraction", "images" ([[scene,
+    im], ...]), "n_images", "digest", "created", "revealed"} (the seed stays in the table); None
+    when the protocol has none."""
+    with engine.begin() as c:
+        r = c.execute(select(held_back).where(held_back.c.split == split)).first()
+    if r is None:
+        return None
+    d = {k: r._mapping[k] for k in ("split", "by", "fraction", "n_images", "digest", "created", "revealed")}
+    d["images"] = json.loads(r.images)
+    return d
+
+
+def hold_back(engine: Engine, split: str, frames: list[tuple[int, int]], fraction: float, by: str = "image",
+              seed: str | None = None) -> dict:
+    """Choose and record the held-back part of ``split``'s test images ``frames``: deterministic
+    from a secret ``seed`` (made here when not given, kept in the table) — ``by`` image: within each
+    scene, the ``round(fraction * n)`` images first in the order of sha256(seed, split, scene, im),
+    so every scene is in both parts; ``by`` scene: the scenes first in the order of sha256(seed,
+    split, scene), ``round(fraction * scenes)`` of them. Refused (one line) when the protocol has one."""
+    import hashlib
+
+    if not 0.0 < fraction < 1.0:
+        raise TdofError(f"--fraction must be between 0 and 1 (exclusive), got {fraction:g}")
+    if by not in ("image", "scene"):
+        raise TdofError(f"--by must be image or scene, got {by[:20]!r}")
+    seed = seed or secrets.token_hex(16)
+
+    def rank(*parts) -> str:
+        return hashlib.sha256(":".join(map(str, (seed, split) + parts)).encode()).hexdigest()
+
+    per_scene: dict[int, list[int]] = {}
+    for s, im in sorted(set((int(s), int(i)) for s, i in frames)):
+        per_scene.setdefault(s, []).append(im)
+    chosen: list[list[int]] = []
+    if by == "image":
+        for s, ims in per_scene.items():
+            k = int(round(fraction * len(ims)))
+            chosen += [[s, im] for im in sorted(sorted(ims, key=lambda im: rank(s, im))[:k])]
+    else:
+        k = int(round(fraction * len(per_scene)))
+        for s in sorted(sorted(per_scene, key=lambda s: rank(s))[:k]):
+            chosen += [[s, im] for im in per_scene[s]]
+    if not chosen or len(chosen) == len(frames):
+        raise TdofError(f"--fraction {fraction:g} by {by} holds back {len(chosen)} of {len(frames)} test images: "
+                        "both parts must hold some")
+    images = json.dumps(chosen, separators=(",", ":"))
+    digest = hashlib.sha256(images.encode()).hexdigest()
+    with engine.begin() as c:
+        if c.execute(select(held_back.c.split).where(held_back.c.split == split)).first() is not None:
+            raise TdofError(f"{split} has a held-back part already (chosen once: changing it would let the public "
+                            "scores of two parts be subtracted)")
+        c.execute(insert(held_back).values(split=split, by=by, fraction=float(fraction), seed=seed, images=images,
+                                           n_images=len(chosen), digest=digest, created=time.time()))
+    return held_back_part(engine, split)
+
+
+def reveal(engine: Engine, split: str) -> dict:
+    """Reveal ``split``'s final leaderboard (its held-back part's scores); refused without a part."""
+    with engine.begin() as c:
+        r = c.execute(update(held_back).where(held_back.c.split == split).values(
+            revealed=func.coalesce(held_back.c.revealed, time.time())))
+        if r.rowcount != 1:
+            raise TdofError(f"{split} has no held-back part (tdof20 serve hold-back --split {split})")
+    return held_back_part(engine, split)
+
+
+def rescore(engine: Engine, current: dict[str, dict], everything: bool = False) -> list[str]:
+    """Queue again every scored submission whose result is not on ``current`` ({split: {"scorer",
+    "dataset"}}: the versions a result computed now would be on), or ``everything``; it keeps its
+    shown result (status done) until the new one is recorded. Returns their uids."""
+    with engine.begin() as c:
+        rows = c.execute(select(submissions.c.id, submissions.c.uid, submissions.c.split, submissions.c.scorer_version,
+                                submissions.c.dataset_version).where(submissions.c.status == "done")).all()
+        old = [r for r in rows if everything or r.split not in current
+               or (r.scorer_version, r.dataset_version) != (current[r.split]["scorer"], current[r.split]["dataset"])]
+        ids = [r.id for r in old]
+        if ids:
+            c.execute(update(jobs).where(and_(jobs.c.submission_id.in_(ids), jobs.c.state == "done")).values(
+                state="queued", claim=None, worker=None, lease_until=None, attempts=0, stage="rescoring",
+                finished=None))
+        return [r.uid for r in old]
+
+
 def is_resource_error(e: BaseException) -> bool:
     """Whether ``e`` is the server's trouble, not the submission's: a write that found no room
     (ENOSPC, EDQUOT, EFBIG) or a database error (no room, locked, gone), at any depth of its causes."""
@@ -303,7 +408,7 @@ def is_resource_error(e: BaseException) -> bool:
     return False
 
 
-__all__ = ["Claim", "MAX_ATTEMPTS", "MIGRATIONS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat", "init_db",
-           "is_resource_error", "release_job", "requeue",
-           "jobs",
+__all__ = ["Claim", "MAX_ATTEMPTS", "MIGRATIONS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat",
+           "held_back_part", "hold_back", "init_db", "is_resource_error", "release_job", "requeue", "rescore", "reveal",
+           "held_back", "jobs",
            "make_engine", "meta", "metadata", "sessions", "submissions", "users"]

@@ -26,6 +26,11 @@ The rule for a test part (docs/server.md, "What the scores can tell"):
   key never leaves the server (the database's ``meta`` table, :func:`server_key`).
 - Exact 0 and 1 stay exact (a value on the grid is never moved).
 
+The same rule covers the condition cells (occlusion level, distance, symmetric or not: each a set
+of targets pooled, shown by its own count). Where a protocol has a held-back part, only the public
+part's cells are shown until the operator reveals the private part's; the whole test set's never
+before (with the public part's, it would give the private part's by subtraction).
+
 A validation part (public labels) is shown whole, per-image errors included.
 """
 
@@ -84,39 +89,78 @@ def _cell(stored: dict, n_eff: int, key: bytes, uid: str, cell: str, reason: str
     return out
 
 
-def disclose(result: dict | None, part: str, key: bytes, uid: str) -> dict | None:
-    """What may be shown of a stored ``result`` (the worker's: ``summary``, ``warnings``, names,
-    and ``per_image`` for a validation part) of submission ``uid`` on ``part`` (test or val).
-
-    A validation result comes back whole. A test result keeps its warnings and names, loses any
-    per-image data, and its summary is the rule's (module docstring): every cell keeps its target
-    count ``n`` and gets ``step`` and its metrics at that step, or ``withheld`` (the reason) and
-    None for each metric. ``result["disclosure"]`` says which rule applied."""
-    if result is None:
-        return None
-    if part == "val":
-        return {**result, "disclosure": {"part": "val", "rule": VAL_RULE}}
-    out = {k: v for k, v in result.items() if k not in ("summary", "per_image", "plots")}
-    sm = result.get("summary") or {}
+def _summary(sm: dict, key: bytes, uid: str, prefix: str = "") -> dict[str, Any]:
+    """A stored summary ({"objects", "scenes", "all", "mean", "proj_px"}) as the rule shows it."""
     objects = {o: c for o, c in (sm.get("objects") or {}).items() if isinstance(c, dict)}
     small = f"fewer than {MIN_TARGETS} targets"
     shown: dict[str, Any] = {}
-    shown["objects"] = {o: _cell(c, int(c.get("n") or 0), key, uid, f"object:{o}", small)
+    shown["objects"] = {o: _cell(c, int(c.get("n") or 0), key, uid, f"{prefix}object:{o}", small)
                         for o, c in objects.items()}
-    shown["scenes"] = {s: _cell(c, int(c.get("n") or 0), key, uid, f"scene:{s}", small)
+    shown["scenes"] = {s: _cell(c, int(c.get("n") or 0), key, uid, f"{prefix}scene:{s}", small)
                        for s, c in (sm.get("scenes") or {}).items() if isinstance(c, dict)}
     if isinstance(sm.get("all"), dict):
-        shown["all"] = _cell(sm["all"], int(sm["all"].get("n") or 0), key, uid, "all", small)
+        shown["all"] = _cell(sm["all"], int(sm["all"].get("n") or 0), key, uid, f"{prefix}all", small)
     if isinstance(sm.get("mean"), dict):
         counts = [int(c.get("n") or 0) for c in objects.values() if (c.get("n") or 0) > 0]
         n_eff = len(counts) * min(counts) if counts else 0  # one target moves the mean by 1 / (N n_o)
         why = small + " in its smallest object times the objects" if counts else \
             "its objects' target counts are not stored (scored by an older server)"
-        shown["mean"] = _cell(sm["mean"], n_eff, key, uid, "mean", why)
+        shown["mean"] = _cell(sm["mean"], n_eff, key, uid, f"{prefix}mean", why)
     if "proj_px" in sm:
         shown["proj_px"] = sm["proj_px"]  # the 2D threshold: the dataset's, public
-    out["summary"] = shown
-    out["disclosure"] = {"part": "test", "rule": RULE, "steps": list(STEPS), "k": K, "min_targets": MIN_TARGETS}
+    return shown
+
+
+def _conditions(cond: Any, key: bytes, uid: str, prefix: str = "") -> dict[str, dict]:
+    """Condition cells ({kind: {bin: cell}}: occlusion, distance, symmetry), each by its own target
+    count like an object's or a scene's (a bin is a set of targets, pooled)."""
+    small = f"fewer than {MIN_TARGETS} targets"
+    return {kind: {b: _cell(c, int(c.get("n") or 0), key, uid, f"{prefix}cond:{kind}:{b}", small)
+                   for b, c in bins.items() if isinstance(c, dict)}
+            for kind, bins in (cond or {}).items() if isinstance(bins, dict)}
+
+
+def disclose(result: dict | None, part: str, key: bytes, uid: str, held: dict | None = None) -> dict | None:
+    """What may be shown of a stored ``result`` (the worker's: ``summary``, ``conditions``,
+    ``parts``, ``warnings``, names, and ``per_image`` for a validation part) of submission ``uid`` on
+    ``part`` (test or val).
+
+    A validation result comes back whole. A test result keeps its warnings and names, loses any
+    per-image data, and its summary and condition cells are the rule's (module docstring): every
+    cell keeps its target count ``n`` and gets ``step`` and its metrics at that step, or
+    ``withheld`` (the reason) and None for each metric. ``result["disclosure"]`` says which rule applied.
+
+    ``held``: the protocol's held-back part ({"revealed": when, or None}) where it has one. Then the
+    summary and conditions shown are the public part's alone (no cell of the whole test set: with
+    the public part's it would give the private part's); the private part's (``private``) only once
+    the operator revealed it, else only that it exists. A result scored before the part was chosen
+    (no ``parts``) shows no figure until it is scored again."""
+    if result is None:
+        return None
+    if part == "val":
+        return {**result, "disclosure": {"part": "val", "rule": VAL_RULE}}
+    out = {k: v for k, v in result.items() if k not in ("summary", "per_image", "plots", "conditions", "parts")}
+    disc: dict[str, Any] = {"part": "test", "rule": RULE, "steps": list(STEPS), "k": K, "min_targets": MIN_TARGETS}
+    if held is None:
+        out["summary"] = _summary(result.get("summary") or {}, key, uid)
+        out["conditions"] = _conditions(result.get("conditions"), key, uid)
+    else:
+        parts = result.get("parts") if isinstance(result.get("parts"), dict) else None
+        disc["held_back"] = True
+        disc["revealed"] = bool(held.get("revealed"))
+        if parts is None:
+            out["summary"] = {"withheld": "scored before this protocol's test images were split into a public and "
+                                          "a held-back part: shown once it is scored again"}
+            out["conditions"] = {}
+        else:
+            pub = parts.get("public") or {}
+            out["summary"] = _summary(pub.get("summary") or {}, key, uid, "public:")
+            out["conditions"] = _conditions(pub.get("conditions"), key, uid, "public:")
+            if held.get("revealed"):
+                priv = parts.get("private") or {}
+                out["private"] = {"summary": _summary(priv.get("summary") or {}, key, uid, "private:"),
+                                  "conditions": _conditions(priv.get("conditions"), key, uid, "private:")}
+    out["disclosure"] = disc
     return out
 
 

@@ -10,7 +10,9 @@ per-target errors and BOP decisions as the scorer computed them (the arrays of
 store, which no endpoint serves. The first request for the results page or one of its figures
 draws the PNGs with the scoring package's :func:`~tdof20.scoring.report.write_plots` — the same
 figures the worker drew before, curves pooled over all targets, so they show what the page already
-tells — and caches them in the same folder with :data:`FIGURES`, the list of their names.
+tells — and caches them in the same folder with :data:`FIGURES`, the list of their names and
+the key of the shown summary they were drawn from (:func:`drawn_from`): a result scored again (a
+new scorer or dataset version, a held-back part's public part) is drawn anew, never an old figure.
 
 Concurrent requests: in one process drawing is serialised by a lock (pyplot is not thread-safe)
 and a request that waited finds the figures drawn; across processes (several servers sharing the
@@ -26,6 +28,7 @@ curves are drawn only for a validation part (public labels); a test part gets
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -87,15 +90,28 @@ def load_figure_data(path: Path, method: str) -> Evaluation:
                       object_labels={int(k): v for k, v in meta["object_labels"].items()}, proj_px=meta["proj_px"])
 
 
-def _listed(folder: Path, listing: str = FIGURES) -> list[str] | None:
-    """The names in the figure list when it and every PNG it names are there."""
+def drawn_from(result: dict | None) -> str:
+    """The key of what a submission's figures are drawn from: its shown summary (a result scored
+    again, on a new scorer or dataset version or on a held-back part's public part, draws anew)."""
+    summary = (result or {}).get("summary")
+    return hashlib.sha256(json.dumps(summary, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _listed(folder: Path, listing: str = FIGURES, key: str | None = None) -> list[str] | None:
+    """The names in the figure list when it was drawn from ``key`` and every PNG it names is there
+    (a list from before keys, or of another key, is drawn again)."""
     try:
-        names = json.loads((folder / listing).read_text())
+        got = json.loads((folder / listing).read_text())
     except (OSError, ValueError):
         return None
+    names = got.get("names") if isinstance(got, dict) and got.get("key") == key else None
     if isinstance(names, list) and all(isinstance(n, str) and (folder / n).is_file() for n in names):
         return names
     return None
+
+
+def _list(folder: Path, listing: str, names: list[str], key: str) -> None:
+    atomic_write_bytes(folder / listing, json.dumps({"key": key, "names": names}).encode())
 
 
 def figures(folder: Path, method: str, result: dict) -> list[str]:
@@ -109,14 +125,15 @@ def figures(folder: Path, method: str, result: dict) -> list[str]:
     folder = Path(folder)
     if ((result or {}).get("disclosure") or {}).get("part") != "val":
         return shown_figures(folder, method, result or {})
-    names = _listed(folder)
+    key = drawn_from(result)
+    names = _listed(folder, FIGURES, key)
     if names is not None:
         return names
     data = folder / FIGURE_DATA
     if not data.is_file():
         return [n for n in result.get("plots", []) if (folder / n).is_file()]
     with _DRAW:
-        names = _listed(folder)  # drawn while this request waited
+        names = _listed(folder, FIGURES, key)  # drawn while this request waited
         if names is not None:
             return names
         try:
@@ -125,7 +142,7 @@ def figures(folder: Path, method: str, result: dict) -> list[str]:
                 names = [p.name for p in report.write_plots([ev], tmp)]
                 for n in names:
                     os.replace(Path(tmp) / n, folder / n)
-            atomic_write_bytes(folder / FIGURES, json.dumps(names).encode())
+            _list(folder, FIGURES, names, key)
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
             print(f"server: figures of {folder.name}: {type(e).__name__}: {e}", file=sys.stderr)
             return []
@@ -168,13 +185,14 @@ def shown_figures(folder: Path, method: str, result: dict) -> list[str]:
     """A test part's figures in ``folder``: :data:`SHOWN_FIGURE`, drawn (once, cached under
     :data:`SHOWN_FIGURES`) from ``result`` as disclosed and nothing else; [] when it shows no object."""
     folder = Path(folder)
-    names = _listed(folder, SHOWN_FIGURES)
+    key = drawn_from(result)
+    names = _listed(folder, SHOWN_FIGURES, key)
     if names is not None:
         return names
     summary = dict((result or {}).get("summary") or {})
     summary["names"] = (result or {}).get("object_names") or {}
     with _DRAW:
-        names = _listed(folder, SHOWN_FIGURES)
+        names = _listed(folder, SHOWN_FIGURES, key)
         if names is not None:
             return names
         try:
@@ -182,13 +200,15 @@ def shown_figures(folder: Path, method: str, result: dict) -> list[str]:
             names = [] if png is None else [SHOWN_FIGURE]
             if png is not None:
                 atomic_write_bytes(folder / SHOWN_FIGURE, png)
+            if png is None:
+                (folder / SHOWN_FIGURE).unlink(missing_ok=True)  # (one drawn from an earlier result)
             if folder.is_dir():
-                atomic_write_bytes(folder / SHOWN_FIGURES, json.dumps(names).encode())
+                _list(folder, SHOWN_FIGURES, names, key)
         except (OSError, ValueError, KeyError, TypeError) as e:
             print(f"server: figures of {folder.name}: {type(e).__name__}: {e}", file=sys.stderr)
             return []
     return names
 
 
-__all__ = ["FIGURES", "FIGURE_DATA", "SHOWN_FIGURE", "SHOWN_FIGURES", "figures", "load_figure_data",
+__all__ = ["FIGURES", "FIGURE_DATA", "SHOWN_FIGURE", "SHOWN_FIGURES", "drawn_from", "figures", "load_figure_data",
            "save_figure_data", "shown_figures"]

@@ -9,7 +9,10 @@ Any number of workers may run, here or on machines sharing the database and the 
 A submission on a protocol's validation part (``part`` val) is scored against the validation
 targets (:func:`tdof20.server.facts.validation_targets`: no test image among them) and gets, besides
 the summary, each image's errors per object (``per_image``), from the same scorer run on that
-image's targets alone. A test submission never gets per-image data."""
+image's targets alone. A test submission never gets per-image data; it gets its condition cells
+and, where its protocol has a held-back part, its public and private parts' summaries
+(:func:`test_cells`), all from the scorer's own per-target arrays. Every result records the scorer
+and dataset versions it was computed with (:func:`current_versions`)."""
 
 from __future__ import annotations
 
@@ -31,11 +34,13 @@ from tdof20.formats import write_json
 from tdof20.scoring import evaluate
 from tdof20.scoring import report
 from tdof20.scoring.dataset_view import DatasetView
+from tdof20.server.cells import dataset_version, scorer_version, test_extras
 from tdof20.server.config import ServerConfig
-from tdof20.server.db import (Claim, claim_job, finish_job, heartbeat, init_db, is_resource_error, make_engine,
-                              release_job, submissions)
+from tdof20.server.db import (Claim, claim_job, finish_job, heartbeat, held_back_part, init_db, is_resource_error,
+                              make_engine, release_job, submissions)
 from tdof20.server.facts import validation_targets
 from tdof20.server.figures import save_figure_data
+from tdof20.server.publish import hidden_frames
 from tdof20.server.store import Store
 
 FAILED = "scoring failed; the server's operators have the details"
@@ -70,6 +75,20 @@ def per_image_errors(results: Path, root: Path, targets: list[dict], lease) -> l
     return out
 
 
+def test_cells(engine: Engine, cfg: ServerConfig, sub, ev, path: Path) -> dict:
+    """A test result's condition cells and, where the protocol has a held-back part, its public and
+    private parts' summaries (:func:`tdof20.server.cells.test_extras`, from the scorer's arrays)."""
+    part = held_back_part(engine, sub.split)
+    private = None if part is None else {(int(s), int(i)) for s, i in part["images"]}
+    return test_extras(ev, Path(cfg.dataset), sub.split, path, private, hidden_frames(cfg.dataset))
+
+
+def current_versions(engine: Engine, root: Path, split: str) -> dict:
+    """The scorer and dataset versions a result of ``split`` computed now is on."""
+    part = held_back_part(engine, split)
+    return {"scorer": scorer_version(), "dataset": dataset_version(root, split, part and part["digest"])}
+
+
 def _renew(engine: Engine, claim: Claim, lease_s: float, stop: threading.Event) -> None:
     while not stop.wait(lease_s / 3):
         try:
@@ -91,7 +110,7 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
         heartbeat(engine, claim, cfg.lease_s, "scoring")
         if pause_s:
             time.sleep(pause_s)
-        result, error = None, None
+        result, error, versions = None, None, None
         try:
             out = store.results_dir(sub.uid)
             path = store.submission_path(sub.stored)
@@ -112,6 +131,10 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
                 heartbeat(engine, claim, cfg.lease_s, "per-image errors")
                 result["per_image"] = per_image_errors(path, cfg.dataset, targets,
                                                        lambda: heartbeat(engine, claim, cfg.lease_s))
+            else:
+                heartbeat(engine, claim, cfg.lease_s, "conditions and parts")
+                result.update(test_cells(engine, cfg, sub, ev, path))
+            versions = current_versions(engine, cfg.dataset, sub.split)
         except TdofError as e:
             if is_resource_error(e):  # (a write that found no room, inside a reader or writer)
                 raise
@@ -120,7 +143,7 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
     finally:
         stop.set()
         beat.join()
-    return finish_job(engine, claim, result, error)
+    return finish_job(engine, claim, result, error, versions if error is None else None)
 
 
 def _why(e: BaseException) -> str:
