@@ -100,35 +100,6 @@ def test_refused_connection_says_what_to_check(make):
     assert HOST in str(ei.value) and "Connection refused" in str(ei.value) and "powered" in str(ei.value)
 
 
-def test_protective_stop_during_move(make):
-    ctl, robot = make(protective_stop_during_move=True, motion_time_s=0.1)
-    with pytest.raises(SafetyStop) as ei:
-        robot.move_joints(Q1, 0.5, 1.0, 5.0)
-    msg = str(ei.value)
-    assert "protective stop" in msg and "teach pendant" in msg
-    assert ei.value.retryable is False
-    # still stopped: the next move is refused before moving
-    n = len(ctl.moveJ_calls)
-    with pytest.raises(SafetyStop, match="protective stop"):
-        robot.move_joints(Q1, 0.5, 1.0, 5.0)
-    assert len(ctl.moveJ_calls) == n
-
-
-def test_protective_stop_at_connect(make):
-    ctl, robot = make(connect=False, protective_stopped=True, safety_mode=3)
-    with pytest.raises(SafetyStop, match="protective stop: clear it on the teach pendant"):
-        robot.connect()
-
-
-def test_emergency_stop_at_connect_and_during_move(make):
-    ctl, robot = make(connect=False, emergency_stopped=True, safety_mode=7)
-    with pytest.raises(SafetyStop, match="emergency-stop button"):
-        robot.connect()
-    ctl, robot = make(emergency_stop_during_move=True, motion_time_s=0.1)
-    with pytest.raises(SafetyStop, match="emergency"):
-        robot.move_joints(Q1, 0.5, 1.0, 5.0)
-
-
 def test_other_safety_modes(make):
     ctl, robot = make(connect=False, safety_mode=5)
     with pytest.raises(SafetyStop, match="safeguard stop"):
@@ -165,15 +136,6 @@ def test_moveJ_returns_false(make):
     with pytest.raises(HardwareError, match="did not take the move .moveJ returned False") as ei:
         robot.move_joints(Q1, 0.5, 1.0, 5.0)
     assert not isinstance(ei.value, SafetyStop)
-
-
-def test_move_timeout_stops_the_arm(make):
-    ctl, robot = make(motion_time_s=3.0)
-    t0 = time.monotonic()
-    with pytest.raises(HardwareError, match="did not finish within 0.3 s") as ei:
-        robot.move_joints(Q1, 0.5, 1.0, 0.3)
-    assert time.monotonic() - t0 < 1.0
-    assert ei.value.retryable and ctl.stops >= 1
 
 
 def test_connection_dropped_once_reconnects(make):
@@ -217,9 +179,9 @@ def test_bad_speed_acceleration_before_any_motion(make):
 
 
 @pytest.mark.parametrize("value, words", [
-    ("0.0", "must be from robot.acceleration (0.5: a stop no slower than the move's own ramp) to 40 rad/s^2, got 0.0"),
-    ("0.2", "got 0.2"),                               # below the move's own acceleration (0.5)
-    ("100.0", "to 40 rad/s^2, got 100.0"),
+    ("0.0", "must be in (0, 40] rad/s^2 (the UR5's joint acceleration limit), got 0.0"),
+    ("-2.0", "got -2.0"),
+    ("100.0", "must be in (0, 40] rad/s^2 (the UR5's joint acceleration limit), got 100.0"),
     ('"fast"', "must be a number"),
     ("nan", "must be a number"),
 ])

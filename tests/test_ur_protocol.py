@@ -80,6 +80,7 @@ def test_a_timed_out_move_stops_the_arm_and_says_where_it_stands(rig):
     assert "did not finish within 0.5 s" in msg and "the arm was stopped (stopJ at 2 rad/s^2" in msg
     assert "stands still at joints" in msg and "rad from the target" in msg and "\n" not in msg
     assert took < 0.5 + 1.0 / 2.0 + 0.4          # the deadline, a 1 rad/s -> 0 stop at 2 rad/s^2, margin
+    assert ei.value.retryable                    # the run may take the move again
     # the controller says so too: the arm stands still now and stays where it stopped
     assert emu.get("leading_speed") == 0.0
     q_stop = emu.get("q")
@@ -155,8 +156,10 @@ def test_protective_stop_during_a_move_is_said_and_resumed(rig):
     msg = str(ei.value)
     assert "protective stop: clear it on the teach pendant" in msg and "during the move" in msg
     assert ei.value.retryable is False
+    moves = [c for _, c in emu.get("commands")].count(1)
     with pytest.raises(SafetyStop, match="protective stop"):   # still stopped: refused before moving
         robot.move_joints(POSITIONS[2], speed=1.0, acceleration=4.0, timeout_s=10.0)
+    assert [c for _, c in emu.get("commands")].count(1) == moves   # no moveJ sent
     t_stop = time.monotonic()
     robot.resume()
     # PolyScope refused the unlock for the first second; then the script was uploaded again

@@ -177,9 +177,9 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     for k in ("speed", "acceleration", "connect_timeout_s", "move_timeout_s", "joint_tolerance_rad"):
         if not getattr(r, k) > 0:
             _fail(src, f"robot.{k}", f"must be > 0, got {getattr(r, k)}")
-    if not r.acceleration <= r.stop_deceleration <= 40:
-        _fail(src, "robot.stop_deceleration", f"must be from robot.acceleration ({r.acceleration:g}: a stop no slower "
-                                              f"than the move's own ramp) to 40 rad/s^2, got {r.stop_deceleration}")
+    if not 0 < r.stop_deceleration <= 40:
+        _fail(src, "robot.stop_deceleration", f"must be in (0, 40] rad/s^2 (the UR5's joint acceleration limit), "
+                                              f"got {r.stop_deceleration}")
     if r.speed > 3.2:
         _fail(src, "robot.speed", f"{r.speed} rad/s exceeds the UR5's joint speed limit (3.14 rad/s); degrees?")
     if not r.positions and r.backend != "sim":
