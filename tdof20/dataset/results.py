@@ -60,6 +60,10 @@ class Results:
     line: np.ndarray  # (N,) int64
     path: Path | None = None
     warnings: list[str] = field(default_factory=list)
+    # a file read keeping only the rows that can count (:func:`read_top_results`): the rows the
+    # file holds, and how many of them match no key (None, 0: every row of the file is here)
+    n_read: int | None = None
+    n_unmatched: int = 0
 
     def __len__(self) -> int:
         return len(self.score)
@@ -216,6 +220,139 @@ def iter_rows(path: str | Path, part_bytes: int = STREAM_BYTES):
             if len(res) or (done and not yielded):
                 yielded = True
                 yield res
+
+
+def _row_keys(part: Results) -> np.ndarray:
+    """(n, 15) float64: what makes two rows duplicates (scene, image, object, R, t)."""
+    n = len(part)
+    return np.ascontiguousarray(np.concatenate([np.stack([part.scene_id, part.im_id, part.obj_id], 1).astype(np.float64),
+                                                part.R.reshape(n, 9), part.t], axis=1))
+
+
+def _row_digests(keys: np.ndarray) -> np.ndarray:
+    """A 64-bit digest of each row of ``keys`` (vectorised multiply-xorshift over its bytes; equal
+    rows, equal digests; a collision is possible, so a digest match is confirmed on the rows)."""
+    words = np.ascontiguousarray(keys).view(np.uint64)
+    h = np.full(len(words), 0x9E3779B97F4A7C15, np.uint64)
+    with np.errstate(over="ignore"):
+        for j in range(words.shape[1]):
+            h ^= words[:, j]
+            h *= np.uint64(0xBF58476D1CE4E5B9)
+            h ^= h >> np.uint64(31)
+    return h
+
+
+_FIELDS_OF = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time", "line")
+
+
+def _cat(parts: list[Results], path: Path | None) -> Results:
+    return Results(*(np.concatenate([getattr(p, k) for p in parts]) for k in _FIELDS_OF), path)
+
+
+def _take(res: Results, idx: np.ndarray) -> Results:
+    return Results(*(getattr(res, k)[idx] for k in _FIELDS_OF), res.path)
+
+
+def _top_k(res: Results, k: np.ndarray) -> np.ndarray:
+    """Indices (in file order) of each (scene, image, object)'s ``k`` (per row: its key's k) best
+    rows: decreasing score, ties the earlier line (the scorer's order)."""
+    order = np.lexsort((res.line, -res.score, res.obj_id, res.im_id, res.scene_id))
+    keys = np.stack([res.scene_id[order], res.im_id[order], res.obj_id[order]], axis=1)
+    new = np.ones(len(order), bool)
+    new[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    start = np.maximum.accumulate(np.where(new, np.arange(len(order)), 0))
+    rank = np.arange(len(order)) - start
+    return np.sort(order[rank < k[order]])
+
+
+def read_top_results(path: str | Path, keep: Callable[[Results], np.ndarray],
+                     check_ids: Callable[[Results], None] | None = None, gt_distance_mm: float | None = None,
+                     part_bytes: int | None = None) -> Results:
+    """Read and check a results CSV as :func:`read_results` does (every row checked, duplicates and
+    one time per image across the whole file, the metres check's median over every row), but
+    keep in memory only the rows that can count: ``keep(part)`` gives each row of a part the
+    number k of its (scene, image, object)'s rows that count (a target's inst_count; 0: it matches
+    no target), and only each key's top k rows by score (ties: the earlier line) are kept, so the
+    memory is bounded by the targets, not the file: beyond them about 24 bytes a row (an 8-byte
+    digest for the duplicates, the line, |t| for the median). ``check_ids(part)``: the dataset's id
+    checks (:func:`check_against_dataset` without the distance), ``gt_distance_mm`` its metres
+    check; ``part_bytes`` the text parsed at once (default :data:`STREAM_BYTES`). The rows come
+    back in file order with ``n_read`` (the file's rows) and ``n_unmatched`` (those with k = 0),
+    and the -1 time warning counted over the whole file. A file of one part gets exactly :func:`read_results`' checks and messages;
+    a longer one names the first problem found part by part (within a part in the reader's order,
+    duplicates and the metres check across parts after the last part)."""
+    path = Path(path)
+    times: dict[tuple[int, int], tuple[float, int]] = {}  # image -> (time, first line); bounded by the dataset
+    digests, lines, norms = [], [], []
+    first_small = None  # (line, |t|) of the first row whose |t| could be metres
+    pool: Results | None = None
+    n = n_unmatched = 0
+    for part in iter_rows(path, STREAM_BYTES if part_bytes is None else part_bytes):
+        if not len(part):
+            continue
+        check_rows(part)
+        if check_ids is not None:
+            check_ids(part)
+        for s, im, t, ln in zip(part.scene_id.tolist(), part.im_id.tolist(), part.time.tolist(), part.line.tolist()):
+            seen = times.get((s, im))
+            if seen is None:
+                times[(s, im)] = (t, ln)
+            elif seen[0] != t:
+                raise TdofError(f"line {ln}: time {t:g} differs from {seen[0]:g} on line {seen[1]} for scene {s} "
+                                f"image {im}: BOP needs one time per image (the time of the whole image on each of "
+                                "its rows)", path)
+        digests.append(_row_digests(_row_keys(part)))
+        lines.append(part.line.copy())
+        nr = np.linalg.norm(part.t, axis=1)
+        norms.append(nr)
+        if gt_distance_mm and first_small is None:
+            small = np.flatnonzero(nr * METRES_RATIO <= gt_distance_mm)
+            if len(small):
+                first_small = (int(part.line[small[0]]), float(nr[small[0]]))
+        n += len(part)
+        k = np.asarray(keep(part), np.int64)
+        n_unmatched += int((k <= 0).sum())
+        part = _take(part, np.flatnonzero(k > 0))
+        pool = part if pool is None else _cat([pool, part], path)
+        pool = _take(pool, _top_k(pool, np.asarray(keep(pool), np.int64)))
+    if n > 1:
+        d = np.concatenate(digests)
+        ln = np.concatenate(lines)
+        _, first_idx, inv = np.unique(d, return_index=True, return_inverse=True)
+        dup = np.flatnonzero(first_idx[inv.reshape(-1)] != np.arange(n))
+        if len(dup):
+            _duplicate(path, {int(ln[i]): int(ln[first_idx[inv.reshape(-1)[i]]]) for i in dup[:64]})
+    if gt_distance_mm and n:
+        med = float(np.median(np.concatenate(norms)))
+        if med * METRES_RATIO <= gt_distance_mm and first_small is not None:
+            raise TdofError(f"line {first_small[0]}: translations look like metres: |t| = {first_small[1]:.4g} here "
+                            f"and {med:.4g} in the median over {n} rows, while the dataset's objects are about "
+                            f"{gt_distance_mm:.0f} mm from the camera; t must be in millimetres", path)
+    out = pool if pool is not None else Results(*(np.zeros((0,) + s_, dt) for s_, dt in (
+        ((), np.int64), ((), np.int64), ((), np.int64), ((), np.float64), ((3, 3), np.float64), ((3,), np.float64),
+        ((), np.float64), ((), np.int64))), path)
+    unmeasured = sum(1 for t, _ in times.values() if t == -1)
+    if unmeasured:
+        out.warnings.append(f"{unmeasured} image(s) report no time (-1): run times will not be summarised")
+    out.n_read, out.n_unmatched = n, n_unmatched
+    return out
+
+
+def _duplicate(path: Path, pairs: dict[int, int]) -> None:
+    """Raise the duplicate error of the first pair (later line -> earlier line) whose rows are
+    really equal (a second pass reads just those rows: digests of 8 bytes may, rarely, collide)."""
+    want = set(pairs) | set(pairs.values())
+    rows = {}
+    for part in iter_rows(path):
+        hit = np.flatnonzero(np.isin(part.line, list(want)))
+        if len(hit):
+            keys = _row_keys(part)
+            rows.update({int(part.line[i]): keys[i] for i in hit})
+    for later in sorted(pairs):
+        a, b = rows.get(later), rows.get(pairs[later])
+        if a is not None and b is not None and a.tobytes() == b.tobytes():
+            raise TdofError(f"line {later}: duplicates line {pairs[later]} (scene {int(a[0])}, image {int(a[1])}, "
+                            f"object {int(a[2])}, same pose)", path)
 
 
 def parse_rows(lines: Sequence[str], path: Path, first_line: int) -> Results:
@@ -413,5 +550,5 @@ def write_results_csv(path: str | Path, rows: Iterable[Sequence]) -> Path:
     return path
 
 
-__all__ = ["HEADER", "ID_MAX", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "check_rows", "iter_rows", "parse_rows", "read_results", "check_against_dataset",
+__all__ = ["HEADER", "ID_MAX", "ROTATION_TOLERANCE", "METRES_RATIO", "Results", "check_rows", "iter_rows", "parse_rows", "read_results", "read_top_results", "check_against_dataset",
            "format_results_csv", "write_results_csv"]

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from tdof20.dataset.results import Results, check_against_dataset, read_results
+from tdof20.dataset.results import Results, check_against_dataset, read_results, read_top_results
 from tdof20.errors import TdofError
 from tdof20.scoring import metrics as M
 from tdof20.scoring.bop19 import bop_matches
@@ -288,14 +288,24 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     tg = load_targets(tpath, ds)
     require_targets(tg, ds, split)
     keys, notes = resolve_metrics(metrics, ds, tg)
-    res = _as_results(results)
-    timings["read"] = _time.perf_counter() - t0
-
     # checks against the dataset: ids, units
     dists = np.concatenate([np.linalg.norm(ds.scene(int(s)).t_all, axis=1) for s in np.unique(tg.scene_id)]) \
         if len(tg) else np.zeros(0)
-    check_against_dataset(res, ds.scene_ids, lambda s: set(ds.scene(s).K), ds.obj_ids,
-                          float(np.median(dists)) if len(dists) else None)
+    gt_dist = float(np.median(dists)) if len(dists) else None
+    if isinstance(results, (str, Path)):
+        # a file: read in parts, only each target's top inst_count rows kept (memory bounded by the targets)
+        count = dict(zip(zip(tg.scene_id.tolist(), tg.im_id.tolist(), tg.obj_id.tolist()), tg.inst_count.tolist()))
+
+        def keep(part: Results) -> np.ndarray:
+            return np.array([count.get(k, 0) for k in zip(part.scene_id.tolist(), part.im_id.tolist(),
+                                                              part.obj_id.tolist())], np.int64)
+
+        res = read_top_results(results, keep, lambda part: check_against_dataset(
+            part, ds.scene_ids, lambda s: set(ds.scene(s).K), ds.obj_ids, None), gt_dist)
+    else:
+        res = _as_results(results)
+        check_against_dataset(res, ds.scene_ids, lambda s: set(ds.scene(s).K), ds.obj_ids, gt_dist)
+    timings["read"] = _time.perf_counter() - t0
     warnings = list(res.warnings) + notes
     do_bop = any(k in keys for k in BOP_KEYS)
 
@@ -323,7 +333,7 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
             top = rows[:cnt]
             po["multi"].append({"ests": [(res.R[r], res.t[r]) for r in top], "gts": gts, "K": scene.K[im],
                                 "count": cnt, "scene": s})
-    n_ignored = len(res) - used
+    n_ignored = res.n_unmatched + len(res) - used  # (a file read in parts: its unmatched rows were not kept)
     n_missing = sum(p["missing"] for p in per_obj.values())
     if n_missing:
         warnings.append(f"{n_missing} of {int(tg.inst_count.sum())} targets have no estimate (counted as failures)")
@@ -381,7 +391,8 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
     names = {int(ob): ds.object_name(int(ob)) for ob in objects}
     px_used = sorted(set(pthr.values()))
     proj_used = (px_used[0] if len(px_used) == 1 else {str(k): v for k, v in sorted(pthr.items())}) if px_used else None
-    return Evaluation(res.name, objects, warnings, timings, len(res), keys, labels, names, proj_used)
+    n_rows = len(res) if res.n_read is None else res.n_read
+    return Evaluation(res.name, objects, warnings, timings, n_rows, keys, labels, names, proj_used)
 
 
 def check_proj_px(proj_px: Any) -> float | None:

@@ -66,6 +66,23 @@ def ray_maps(K: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.
     return _MAPS[key]
 
 
+_SEEN: dict = {}  # (K, h, w) -> poses seen so far (bounded: a few keys kept, as _MAPS)
+
+
+def _maps_for(K: np.ndarray, h: int, w: int, poses: int):
+    """:func:`ray_maps` of camera K once _MAP_MIN_POSES poses have used it (in this call or the
+    ones before: a batch of a few poses per image chunk gets the maps the earlier ones paid for),
+    else None (the poses compute their rays)."""
+    key = (np.asarray(K, np.float64).tobytes(), int(h), int(w))
+    if key not in _MAPS:
+        if len(_SEEN) >= 64:
+            _SEEN.clear()
+        _SEEN[key] = _SEEN.get(key, 0) + poses
+        if _SEEN[key] < _MAP_MIN_POSES:
+            return None
+    return ray_maps(K, h, w)
+
+
 def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Depth (H,W) along the optical axis -> distance from the camera centre (float64); pixel
     (u, v)'s ray through the integer (u, v), as bop_toolkit's ``depth_im_to_dist_im_fast``."""
@@ -310,8 +327,7 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
     # computing them pose by pose); the other poses compute theirs
     uniq, inv, counts = np.unique(Ks.reshape(n, 9), axis=0, return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
-    maps = [ray_maps(uniq[k].reshape(3, 3), h_img, w_img) if counts[k] >= _MAP_MIN_POSES else None
-            for k in range(len(uniq))]
+    maps = [_maps_for(uniq[k].reshape(3, 3), h_img, w_img, int(counts[k])) for k in range(len(uniq))]
     lists = {}
     for key, R, t, bx, polys in (("g", Rg, tg, bg, pg), ("e", Re, te, be, pe)):
         near, far = renderer.clip_planes(R, t)
@@ -323,6 +339,7 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
         nrm = np.empty(tot)
         dt = np.empty(tot)
         cidx = np.empty(tot, np.int64)
+        org = np.empty((n, 3), np.float32)  # each pose's ray origin (the camera centre in the model frame)
         # pose by pose: each pose's pixels stay in cache through the dozen operations on them
         # (one pass over every pixel of the chunk per operation is several times slower)
         for j, (ys, xs, fl) in enumerate(px):
@@ -343,12 +360,13 @@ def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, 
             Rj = R[j]
             for i in range(3):  # R^T (x, y, 1): the rays in the model frame
                 rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
-            rays[a:b, :3] = (-Rj.T @ t[j]).astype(np.float32)
+            org[j] = (-Rj.T @ t[j]).astype(np.float32)
             nrm[a:b] = q
             img = depth_test[image[j]]
             dt[a:b] = img.ravel().take(v * img.shape[1] + u) * q
             cidx[a:b] = fl + off[j]
         pose = np.repeat(np.arange(n), cnt)
+        rays[:, :3] = org.take(pose, axis=0)
         coef = depth_buffer_coefficients(near, far)  # per pose; per hit below
         z = depth_buffer(renderer.cast_rays(rays), None, None, lambda hit: _per_hit(coef, pose.take(hit))) * nrm
         lists[key] = (cidx, z, dt, pose)
