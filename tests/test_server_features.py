@@ -77,6 +77,9 @@ def test_queue_position_and_eta_from_recent_scorings(server, dataset):
     assert r["queue"]["position"] == 2
     mine = server.client.get("/api/submissions", headers=server.headers("alice")).json()
     assert [m.get("queue", {}).get("position") for m in mine] == [2, 1, None]
+    cells = alice.get("/mine").text.split('class="l queue-cell">')[1:]
+    assert [c.split("</td>")[0] for c in cells] == [f"#{m['queue']['position']} · ~{m['queue']['eta_s']} s"
+                                                    for m in mine[:2]] + ["—"]  # (under 90 s: in seconds)
     assert "queue" not in server.client.get(f"/api/submissions/{uids[0]}", headers=server.headers("alice")).json()
 
 

@@ -34,7 +34,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from tdof20.server import auth, submissions as subs
 from tdof20.server.config import ServerConfig
 from tdof20.server.cells import dataset_version, scorer_version
-from tdof20.server.db import init_db, make_engine
+from tdof20.server.db import init_db, make_engine, versions_behind
 from tdof20.server.facts import DatasetFacts
 from tdof20.server.figures import figures
 from tdof20.server.publish import DERIVABLE, derivable, hidden_frames
@@ -214,6 +214,12 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
         held = subs.held_parts(engine)
         return {s: {"scorer": scorer, "dataset": dataset_version(cfg.dataset, s, (held.get(s) or {}).get("digest"))}
                 for s in facts.splits}
+
+    behind = versions_behind(engine, current())
+    if behind:  # (the operator changed the dataset or upgraded the scorer: say so once, at start)
+        print(f"server: {behind} scored submission(s) are on an older scorer or dataset version than this "
+              f"server's (scorer {scorer}): run tdof20 serve rescore --dataset {cfg.dataset} to score them again",
+              file=sys.stderr)
     signin_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
     token_failures = auth.FailureLimit(cfg.max_failures, cfg.failure_window_s)
     app = FastAPI(title="tdof20 benchmark server", version="1", docs_url=None, redoc_url=None)

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 import tdof20
+from tdof20.dataset.layouts import open_dataset
 from tdof20.dataset.results import read_results
 from tdof20.formats.io import read_json
 from tdof20.scoring.dataset_view import DatasetView
@@ -163,12 +164,14 @@ def conditions_of(ev: Evaluation, cmasks: dict, within: dict[int, np.ndarray] | 
 
 
 def test_extras(ev: Evaluation, root: Path, split: str, results: Path, private: set[tuple[int, int]] | None,
-                hidden: dict[int, set[int]]) -> dict:
+                hidden: dict[int, set[int]], targets: list[dict] | None = None) -> dict:
     """What the worker adds to a test result (module docstring): {"conditions"} and, where the
     protocol has a held-back part (``private``: its (scene_id, im_id)), {"parts": {"public":
-    {"summary", "conditions"}, "private": {...}}}; {} when the scorer's order cannot be followed."""
+    {"summary", "conditions"}, "private": {...}}}; {} when the scorer's order cannot be followed.
+    ``targets``: the targets ``ev`` was scored on (default: the protocol's test targets; a
+    validation result gives its validation targets and gets its conditions the same way)."""
     ds = DatasetView(root)
-    targets = read_json(ds.dataset.scoring_targets_path(split))
+    targets = read_json(ds.dataset.scoring_targets_path(split)) if targets is None else targets
     inst = instance_images(ev, ds, targets, results)
     if inst is None:
         return {}
@@ -194,15 +197,38 @@ def _digest(paths) -> str:
     return h.hexdigest()
 
 
+def scorer_sources() -> list[Path]:
+    """What a stored result is computed by: the scoring package, the results reader and this module
+    (the condition cells and the parts); the disclosure rule applies when a result is shown, so it
+    is not among them."""
+    import tdof20.dataset.results
+    import tdof20.scoring
+
+    return (sorted(Path(tdof20.scoring.__file__).parent.rglob("*.py"))
+            + [Path(tdof20.dataset.results.__file__), Path(__file__)])
+
+
 def scorer_version() -> str:
-    """tdof20's version and a digest of the scoring package's source: any change to the scorer
-    (a fix, a new rounding) gives a new version."""
-    src = sorted(Path(__import__("tdof20.scoring", fromlist=["x"]).__file__).parent.rglob("*.py"))
-    return f"{tdof20.__version__}+{_digest(src)[:8]}"
+    """tdof20's version and a digest of :func:`scorer_sources`: any change to the scorer (a fix, a
+    new rounding, a new condition bin) gives a new version."""
+    return f"{tdof20.__version__}+{_digest(scorer_sources())[:8]}"
+
+
+def _stamp(p: Path) -> tuple:
+    try:
+        st = p.stat()
+        return (str(p), st.st_mtime_ns, st.st_size)
+    except OSError:
+        return (str(p), None, None)
 
 
 @lru_cache(maxsize=32)
-def _dataset_digest(root: str, split: str, stamp: tuple) -> str:
+def _targets_path(root: str, split: str) -> Path:
+    return open_dataset(root).scoring_targets_path(split)
+
+
+@lru_cache(maxsize=32)
+def _dataset_files(root: str, split: str, targets_stamp: tuple) -> tuple[Path, ...]:
     ds = DatasetView(root)
     paths = [ds.dataset.scoring_targets_path(split)]
     scenes = sorted({int(t["scene_id"]) for t in read_json(paths[0])})
@@ -210,17 +236,24 @@ def _dataset_digest(root: str, split: str, stamp: tuple) -> str:
         d = ds.scene_dir(s)
         paths += [d / "scene_gt.json", d / "scene_gt_info.json", d / "scene_camera.json"]
     paths += sorted((Path(root) / "models").glob("models_info.json"))
+    return tuple(paths)
+
+
+@lru_cache(maxsize=32)
+def _dataset_digest(paths: tuple[Path, ...], stamps: tuple) -> str:
     return _digest(paths)[:8]
 
 
 def dataset_version(root: Path, split: str, held_digest: str | None = None) -> str:
     """A digest of what a test score of ``split`` depends on in the dataset (its targets, its test
-    scenes' labels and cameras, the models' info) and of its held-back image list, if any."""
-    root = Path(root)
-    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(root.glob("test_targets_*.json")))
-    v = _dataset_digest(str(root.resolve()), split, stamp)
+    scenes' labels and cameras, the models' info) and of its held-back image list, if any. Read
+    again whenever one of those files changes (size or time), so a long-running server or worker
+    sees the operator's change at once; otherwise a stat per file."""
+    root = Path(root).resolve()
+    paths = _dataset_files(str(root), split, _stamp(_targets_path(str(root), split)))
+    v = _dataset_digest(paths, tuple(_stamp(p) for p in paths))
     return v + (f"/{held_digest[:6]}" if held_digest else "")
 
 
 __all__ = ["OCCLUSION", "SYMMETRY", "condition_masks", "conditions_of", "dataset_version", "distance_edges",
-           "instance_images", "pooled", "scorer_version", "summary_of", "test_extras"]
+           "instance_images", "pooled", "scorer_sources", "scorer_version", "summary_of", "test_extras"]

@@ -104,16 +104,23 @@ def hold_back_command(split: str = typer.Option(..., help="the protocol whose te
     ``rescore`` scores earlier results again on the two parts."""
     from tdof20.dataset.layouts import open_dataset
     from tdof20.formats.io import read_json
-    from tdof20.server.db import hold_back
+    from tdof20.server.db import hold_back, scored_before
 
     ds = open_dataset(dataset)
     targets = read_json(ds.scoring_targets_path(split)) if ds.scoring_targets_path(split).is_file() else []
     frames = sorted({(int(t["scene_id"]), int(t["im_id"])) for t in targets})
     if not frames:
         raise TdofError(f"{split} has no test targets in {dataset}")
-    part = hold_back(_engine(data, db), split, frames, fraction, by)
-    typer.echo(f"held back {part['n_images']} of {len(frames)} {split} test images (by {part['by']}); "
-               f"run tdof20 serve rescore --dataset {dataset} for results scored before")
+    engine = _engine(data, db)
+    part = hold_back(engine, split, frames, fraction, by)
+    earlier = scored_before(engine, split)
+    typer.echo(f"held back {part['n_images']} of {len(frames)} {split} test images (by {part['by']})"
+               + (f"; run tdof20 serve rescore --dataset {dataset} for the {earlier} result(s) scored before"
+                  if earlier else ""))
+    if earlier:
+        typer.echo(f"warning: {earlier} {split} test result(s) were shown on the whole test set before this part "
+                   "was chosen: with their public part's scores they give their held-back part's to about a step "
+                   "(hold back before the first test submission)")
 
 
 @serve_app.command("reveal")
@@ -135,16 +142,13 @@ def rescore_command(dataset: Path = typer.Option(..., help="the full dataset the
                                                                            "its versions")) -> None:
     """Queue again every scored submission whose result is on an older scorer or dataset version
     (it keeps its shown score until the new one is recorded); the workers score them."""
-    from tdof20.server.cells import dataset_version, scorer_version
-    from tdof20.server.db import held_back_part, rescore
+    from tdof20.server.db import rescore
     from tdof20.server.facts import DatasetFacts
+    from tdof20.server.worker import current_versions
 
     engine = _engine(data, db)
-    scorer = scorer_version()
-    current = {}
-    for s in DatasetFacts(dataset).splits:
-        part = held_back_part(engine, s)
-        current[s] = {"scorer": scorer, "dataset": dataset_version(dataset, s, part and part["digest"])}
+    current = {s: current_versions(engine, dataset, s) for s in DatasetFacts(dataset).splits}
+    scorer = next(iter(current.values()))["scorer"]
     uids = rescore(engine, current, everything)
     typer.echo(f"queued again {len(uids)} submission(s) to score on scorer {scorer}"
                f"{': ' + ', '.join(uids[:20]) if uids else ''}{' ...' if len(uids) > 20 else ''}")

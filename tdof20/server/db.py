@@ -366,6 +366,27 @@ def hold_back(engine: Engine, split: str, frames: list[tuple[int, int]], fractio
     return held_back_part(engine, split)
 
 
+def scored_before(engine: Engine, split: str) -> int:
+    """How many of ``split``'s test submissions have a result recorded (scored or withdrawn after)."""
+    with engine.begin() as c:
+        return c.execute(select(func.count()).select_from(submissions).where(and_(
+            submissions.c.split == split, submissions.c.part == "test",
+            submissions.c.result.is_not(None)))).scalar_one()
+
+
+def versions_behind(engine: Engine, current: dict[str, dict]) -> int:
+    """How many scored submissions are on other versions than ``current`` ({split: {"scorer", "dataset"}})."""
+    with engine.begin() as c:
+        rows = c.execute(select(submissions.c.split, submissions.c.scorer_version, submissions.c.dataset_version)
+                         .where(submissions.c.status == "done")).all()
+    return sum(1 for r in rows if _behind(r, current))
+
+
+def _behind(r, current: dict[str, dict]) -> bool:
+    cur = current.get(r.split)
+    return cur is None or (r.scorer_version, r.dataset_version) != (cur["scorer"], cur["dataset"])
+
+
 def reveal(engine: Engine, split: str) -> dict:
     """Reveal ``split``'s final leaderboard (its held-back part's scores); refused without a part."""
     with engine.begin() as c:
@@ -383,8 +404,7 @@ def rescore(engine: Engine, current: dict[str, dict], everything: bool = False) 
     with engine.begin() as c:
         rows = c.execute(select(submissions.c.id, submissions.c.uid, submissions.c.split, submissions.c.scorer_version,
                                 submissions.c.dataset_version).where(submissions.c.status == "done")).all()
-        old = [r for r in rows if everything or r.split not in current
-               or (r.scorer_version, r.dataset_version) != (current[r.split]["scorer"], current[r.split]["dataset"])]
+        old = [r for r in rows if everything or _behind(r, current)]
         ids = [r.id for r in old]
         if ids:
             c.execute(update(jobs).where(and_(jobs.c.submission_id.in_(ids), jobs.c.state == "done")).values(
@@ -410,5 +430,6 @@ def is_resource_error(e: BaseException) -> bool:
 
 __all__ = ["Claim", "MAX_ATTEMPTS", "MIGRATIONS", "SCHEMA_VERSION", "claim_job", "finish_job", "heartbeat",
            "held_back_part", "hold_back", "init_db", "is_resource_error", "release_job", "requeue", "rescore", "reveal",
+           "scored_before", "versions_behind",
            "held_back", "jobs",
            "make_engine", "meta", "metadata", "sessions", "submissions", "users"]

@@ -9,8 +9,8 @@ Any number of workers may run, here or on machines sharing the database and the 
 A submission on a protocol's validation part (``part`` val) is scored against the validation
 targets (:func:`tdof20.server.facts.validation_targets`: no test image among them) and gets, besides
 the summary, each image's errors per object (``per_image``), from the same scorer run on that
-image's targets alone. A test submission never gets per-image data; it gets its condition cells
-and, where its protocol has a held-back part, its public and private parts' summaries
+image's targets alone, and its condition cells. A test submission never gets per-image data; it
+gets its condition cells and, where its protocol has a held-back part, its public and private parts' summaries
 (:func:`test_cells`), all from the scorer's own per-target arrays. Every result records the scorer
 and dataset versions it was computed with (:func:`current_versions`)."""
 
@@ -131,6 +131,9 @@ def score_one(engine: Engine, store: Store, cfg: ServerConfig, claim: Claim, pau
                 heartbeat(engine, claim, cfg.lease_s, "per-image errors")
                 result["per_image"] = per_image_errors(path, cfg.dataset, targets,
                                                        lambda: heartbeat(engine, claim, cfg.lease_s))
+                heartbeat(engine, claim, cfg.lease_s, "conditions")
+                result.update(test_extras(ev, Path(cfg.dataset), sub.split, path, None, hidden_frames(cfg.dataset),
+                                          targets))
             else:
                 heartbeat(engine, claim, cfg.lease_s, "conditions and parts")
                 result.update(test_cells(engine, cfg, sub, ev, path))
