@@ -13,11 +13,15 @@ op          fields
 place       ``object`` (the object's index in session.json's objects = fits.json's ``index``),
             ``obj_id``, ``T_ref_model`` (16 numbers, row-major: the new pose in the reference
             frame), ``how`` ("nudge", "drag", "snap", "set"), ``detail`` (the nudge's axis and
-            amount; the snap's fitness and mean distance)
+            amount; the snap's fitness and mean distance; the gates' figures), optionally
+            ``cluster`` (the cluster it now stands in, when the reviewer chose it)
 assign      ``object``, ``obj_id``, ``cluster`` (the reconstruction's cluster that is this object),
             ``T_ref_model`` (its upright fit in that cluster, the model stage's quick fit)
 frames      ``arm``, ``steps`` (a list; ``null`` = the whole arm position), ``verdict``:
-            "accept" (label it although it was flagged), "reject" (never label it), "clear"
+            "accept" (label it although it was flagged), "reject" (never label it), "clear";
+            with ``object`` (an index, as ``place``) and ``obj_id``: that one object only —
+            "reject" (the frames are labelled without it: no gt entry, no masks; it still hides
+            what it stands in front of) or "clear"
 undo        ``undoes`` (the id of the entry it takes back; the last one not yet taken back)
 relabel     a note that label and QA were rerun from the corrections so far (no effect on replay)
 ==========  =====================================================================================
@@ -81,12 +85,19 @@ def check_entry(e: Any, where: str) -> dict:
             raise TdofError(f"{where}: 'place' needs 'how' (one of {', '.join(_HOW)})")
         if op == "assign" and (not isinstance(e.get("cluster"), int) or e["cluster"] < 0):
             raise TdofError(f"{where}: 'assign' needs 'cluster' (an index >= 0)")
+        if op == "place" and e.get("cluster") is not None and (not isinstance(e["cluster"], int) or e["cluster"] < 0):
+            raise TdofError(f"{where}: a 'place' entry's 'cluster' must be an index >= 0")
     elif op == "frames":
         steps = e.get("steps")
         if not isinstance(e.get("arm"), int) or e["arm"] < 0 or e.get("verdict") not in _VERDICTS or not (
                 steps is None or (isinstance(steps, list) and all(isinstance(k, int) and k >= 0 for k in steps))):
             raise TdofError(f"{where}: 'frames' needs 'arm', 'steps' (a list, or null for the whole arm) and "
                             f"'verdict' ({', '.join(_VERDICTS)})")
+        if e.get("object") is not None and (not isinstance(e["object"], int) or e["object"] < 0
+                                            or not isinstance(e.get("obj_id"), int)
+                                            or e["verdict"] not in ("reject", "clear")):
+            raise TdofError(f"{where}: 'frames' for one object needs 'object' (an index >= 0), 'obj_id' and "
+                            f"'verdict' reject or clear")
     elif op == "undo" and not isinstance(e.get("undoes"), int):
         raise TdofError(f"{where}: 'undo' needs 'undoes' (an entry id)")
     return e
@@ -159,9 +170,16 @@ class Corrections:
     placed: dict[int, dict] = field(default_factory=dict)        # object index -> {obj_id, T_ref_model, cluster, how, id}
     arm_verdicts: dict[int, str] = field(default_factory=dict)   # arm -> accept | reject
     frame_verdicts: dict[tuple[int, int], str] = field(default_factory=dict)
+    # one object rejected in frames: {object index: obj_id} per arm (every step) and per frame
+    arm_objects: dict[int, dict[int, int]] = field(default_factory=dict)
+    frame_objects: dict[tuple[int, int], dict[int, int]] = field(default_factory=dict)
 
     def verdict(self, arm: int, step: int) -> str | None:
         return self.frame_verdicts.get((arm, step), self.arm_verdicts.get(arm))
+
+    def rejected_objects(self, arm: int, step: int) -> dict[int, int]:
+        """{object index: obj_id} of the objects rejected in frame (arm, step)."""
+        return {**self.arm_objects.get(arm, {}), **self.frame_objects.get((arm, step), {})}
 
     def placement_key(self) -> dict:
         """What the place stage's result depends on (its fingerprint): the corrected poses."""
@@ -169,18 +187,31 @@ class Corrections:
 
     def verdict_key(self) -> dict:
         """What the label stage's result depends on: the frame verdicts."""
-        return {"arms": {str(a): v for a, v in sorted(self.arm_verdicts.items())},
-                "frames": [[a, k, v] for (a, k), v in sorted(self.frame_verdicts.items())]}
+        key = {"arms": {str(a): v for a, v in sorted(self.arm_verdicts.items())},
+               "frames": [[a, k, v] for (a, k), v in sorted(self.frame_verdicts.items())]}
+        if self.arm_objects or self.frame_objects:   # (absent when none: older fingerprints stay valid)
+            key["objects"] = {"arms": {str(a): sorted(o) for a, o in sorted(self.arm_objects.items()) if o},
+                              "frames": [[a, k, sorted(o)] for (a, k), o in sorted(self.frame_objects.items()) if o]}
+        return key
 
     def skip(self, flagged: list, n_arms: int, steps: int) -> list[tuple[int, int, str]]:
         """The frames the label stage skips: registration's ``flagged`` [(arm, step, reason)] less
-        those the reviewer accepted, plus those rejected."""
+        those the reviewer accepted, plus those rejected; and, for a frame labelled with objects
+        the reviewer rejected in it, ``(arm, step, reason, obj_ids)``: label it without those
+        objects (:func:`~tdof20.annotate.label.label_scene`'s ``skip``)."""
         out = [(a, k, r) for a, k, r in flagged if self.verdict(a, k) != "accept"]
         have = {(a, k) for a, k, _ in out}
         for a in range(n_arms):
             for k in range(steps):
                 if self.verdict(a, k) == "reject" and (a, k) not in have:
                     out.append((a, k, f"{REJECTED} ({JOURNAL})"))
+                    have.add((a, k))
+        for a in range(n_arms):
+            for k in range(steps):
+                objs = self.rejected_objects(a, k)
+                if objs and (a, k) not in have:
+                    out.append((a, k, f"{REJECTED} ({JOURNAL}): objects {sorted(set(objs.values()))}",
+                                tuple(sorted(set(objs.values())))))
         return sorted(out)
 
     def apply(self, placements: list[dict], failed: list[dict], fits_objects: list[dict],
@@ -230,7 +261,23 @@ def replay(entries: list[dict]) -> Corrections:
         elif op == "place":
             prev = c.placed.get(e["object"], {})
             c.placed[e["object"]] = {"obj_id": e["obj_id"], "T_ref_model": e["T_ref_model"],
-                                     "cluster": prev.get("cluster"), "how": e["how"], "id": e["id"]}
+                                     "cluster": e["cluster"] if e.get("cluster") is not None else prev.get("cluster"),
+                                     "how": e["how"], "id": e["id"]}
+        elif op == "frames" and e.get("object") is not None:
+            a, i, reject = e["arm"], e["object"], e["verdict"] == "reject"
+            if e["steps"] is None:
+                for key in [k for k in c.frame_objects if k[0] == a]:
+                    c.frame_objects[key].pop(i, None)
+                if reject:
+                    c.arm_objects.setdefault(a, {})[i] = e["obj_id"]
+                else:
+                    c.arm_objects.get(a, {}).pop(i, None)
+            else:
+                for k in e["steps"]:
+                    if reject:
+                        c.frame_objects.setdefault((a, k), {})[i] = e["obj_id"]
+                    else:
+                        c.frame_objects.get((a, k), {}).pop(i, None)   # (an arm-wide reject is cleared arm-wide)
         elif op == "frames":
             a, v = e["arm"], e["verdict"]
             if e["steps"] is None:

@@ -219,7 +219,8 @@ class _LabelJob:
         return data, img
 
     def label_frame(self, st: _WorkerState, spec: tuple) -> dict:
-        im_id, arm, step, T_ref_frame, compare = spec
+        im_id, arm, step, T_ref_frame, compare = spec[:5]
+        drop = spec[5] if len(spec) > 5 else frozenset()   # obj_ids labelled out of this frame (still rendered)
         res: dict = {"im_id": im_id, "arm": arm, "step": step}
         c0, t0 = time.process_time(), time.perf_counter()
         try:
@@ -258,7 +259,7 @@ class _LabelJob:
             ev0, ev1, eu0, eu1 = exact.box
             gate = gate_check(exact, opaque[ev0:ev1, eu0:eu1].astype(np.float32) * np.float32(cam.depth_scale),
                               self.cfg)
-            failed = [(g, poses[g][0], c) for g, c in enumerate(gate) if c["ok"] is False]
+            failed = [(g, poses[g][0], c) for g, c in enumerate(gate) if c["ok"] is False and poses[g][0] not in drop]
             if failed:
                 res.update(status="skipped", gate=gate, reason="label gate: " + "; ".join(
                     f"object {o} (gt {g}) disagrees with the opaque depth: {c['agree']:.0%} of {c['pixels']} "
@@ -270,9 +271,11 @@ class _LabelJob:
         restored = np.zeros((h, w), np.uint16) if opaque is None else opaque.copy()
         restored[v0:v1, u0:u1][hit] = cam.mm_to_depth(lab.depth[hit])
         visib = [(lab.visible == i) & full for i, full in enumerate(lab.full)]
+        kept = [g for g, (o, _) in enumerate(poses) if o not in drop]
+        full_k, visib = [lab.full[g] for g in kept], [visib[g] for g in kept]
         gt, gt_info = [], []
         depth_box = depth[v0:v1, u0:u1]
-        for (obj_id, T), full, vis in zip(poses, lab.full, visib):
+        for (obj_id, T), full, vis in zip([poses[g] for g in kept], full_k, visib):
             gt.append(pose_to_bop(T[:3, :3], T[:3, 3], obj_id=int(obj_id)))
             gt_info.append(_gt_info(full, vis, depth_box, offset=(u0, v0)))
         T_w2c = T_frame_ref
@@ -291,12 +294,12 @@ class _LabelJob:
         else:
             (out / "depth_opaque" / name).unlink(missing_ok=True)
         write_png(out / "depth_restored" / name, restored, c)
-        for g, (full, vis) in enumerate(zip(lab.full, visib)):
+        for g, (full, vis) in enumerate(zip(full_k, visib)):
             for sub, m in (("mask", full), ("mask_visib", vis)):
                 img = np.zeros((h, w), np.uint8)
                 img[v0:v1, u0:u1] = m.view(np.uint8) * np.uint8(255)
                 write_png(out / sub / f"{im_id:06d}_{g:06d}.png", img, c)
-        drop_stale_masks(out, im_id, len(poses))  # a frame written before with more instances
+        drop_stale_masks(out, im_id, len(kept))  # a frame written before with more instances
         t4 = time.perf_counter()
         res.update(status="labelled", camera=camera, gt=gt, gt_info=gt_info, compare=cmp,
                    opaque=opaque_bytes is not None, gate=gate,
@@ -398,6 +401,8 @@ def _skip_reasons(skip: Any) -> dict[tuple[int, int], str]:
         return {(int(a), int(k)): str(r) for (a, k), r in skip.items()}
     out = {}
     for item in skip or ():
+        if len(item) == 4:  # (arm, step, reason, obj_ids): only those objects left out (_object_skips)
+            continue
         if len(item) == 3:  # (arm, step, reason), as RegistrationResult.flagged_frames() gives
             a, k, r = item
             out[(int(a), int(k))] = str(r)
@@ -405,6 +410,14 @@ def _skip_reasons(skip: Any) -> dict[tuple[int, int], str]:
             a, k = item
             out[(int(a), int(k))] = "skipped by the caller (flagged)"
     return out
+
+
+def _object_skips(skip: Any) -> dict[tuple[int, int], tuple[frozenset, str]]:
+    """{(arm, step): (obj_ids, reason)} of ``skip``'s (arm, step, reason, obj_ids) items."""
+    if isinstance(skip, Mapping):
+        return {}
+    return {(int(it[0]), int(it[1])): (frozenset(int(o) for o in it[3]), str(it[2]))
+            for it in skip or () if len(it) == 4}
 
 
 def _listing(d: Path) -> set[str]:
@@ -472,7 +485,9 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         reference camera; gt_id = index in this list.
     models: {obj_id: (vertices (V,3) mm, faces (F,3))} in the model frames.
     skip: frames not to label: [(arm, step)], [(arm, step, reason)] (as
-        ``RegistrationResult.flagged_frames()`` lists them) or {(arm, step): reason}.
+        ``RegistrationResult.flagged_frames()`` lists them) or {(arm, step): reason}; an item
+        (arm, step, reason, obj_ids) labels that frame without those objects (no gt entry, no
+        masks, not judged by the gate; still rendered, so they hide what they stand in front of).
     samples: {obj_id: (N,3) mm} Monte-Carlo surface samples for far_to_near; None = ``cfg.samples``
         area-uniform samples of each mesh (seed 0), drawn in each worker when needed.
     reuse: keep a frame whose files and labels on disk are already the ones this run would write
@@ -529,13 +544,13 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
         samples = {int(k): np.asarray(v, np.float64).reshape(-1, 3) for k, v in samples.items()}
     Ts = _frame_transforms(T_ref_frames, n_arms, steps)
     skips = _skip_reasons(skip)
+    drops = _object_skips(skip)
 
     # --- plan: what is done, what to do, what to skip ------------------------------------------
     writer = BopSceneWriter(out)
     listing = {d: _listing(out / d) for d in IMAGE_DIRS + MASK_DIRS}
     K_flat = [float(x) for x in cam.K.reshape(-1)]
     skipped, done, todo = [], [], []
-    n = len(places)
     for arm in range(n_arms):
         for step in range(steps):
             im_id = arm * steps + step
@@ -544,6 +559,10 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
                 reason = "no registration for this frame (no T_ref_frame)"
             if reason is None and not session.has_frame("transparent", arm, step):
                 reason = "missing frame: the journal does not list it (never captured)"
+            drop, drop_reason = drops.get((arm, step), (frozenset(), ""))
+            kept = [(o, Tm) for o, Tm in places if o not in drop]
+            if reason is None and not kept:
+                reason = drop_reason
             if reason is not None:
                 skipped.append({"im_id": im_id, "arm": arm, "step": step, "reason": reason})
                 continue
@@ -553,15 +572,15 @@ def label_scene(session_dir: str | Path, out_dir: str | Path, T_ref_frames: Any,
             has_opaque = session.has_frame("opaque", arm, step)
             files_ok = (all(name in listing[d] for d in ("rgb", "depth", "depth_restored"))
                         and (not has_opaque or name in listing["depth_opaque"])
-                        and all(f"{im_id:06d}_{g:06d}.png" in listing[d] for d in MASK_DIRS for g in range(n)))
+                        and all(f"{im_id:06d}_{g:06d}.png" in listing[d] for d in MASK_DIRS for g in range(len(kept))))
             if reuse and files_ok and writer.has(im_id):
                 camd = {"cam_K": K_flat, "depth_scale": float(cam.depth_scale),
                         "cam_R_w2c": T_frame_ref[:3, :3].reshape(-1), "cam_t_w2c": T_frame_ref[:3, 3]}
-                if _same_labels(writer, im_id, camd, [(o, T_frame_ref @ Tm) for o, Tm in places]):
+                if _same_labels(writer, im_id, camd, [(o, T_frame_ref @ Tm) for o, Tm in kept]):
                     done.append(im_id)
                     continue
             compare = cfg.compare_every > 0 and im_id % cfg.compare_every == 0
-            todo.append((im_id, arm, step, T, compare))
+            todo.append((im_id, arm, step, T, compare) + ((drop,) if drop else ()))
     removed = []
     for s in skipped:  # labels of an earlier run for a frame that must not be labelled now
         im_id = s["im_id"]

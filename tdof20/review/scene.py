@@ -7,16 +7,30 @@ registration, the reconstruction, the fits, placements, labels, QA), the reviewe
 * :meth:`~ReviewScene.nudge` — move an object by ``amount`` mm along an axis of the *table frame*
   (x, y on the table top, z along its normal) or turn it by ``amount`` degrees about one (rx, ry,
   rz; about the model's centre, so a turn does not also move it);
-* :meth:`~ReviewScene.set_pose` — a pose given whole (the 3D view's drag), in the table frame;
+* :meth:`~ReviewScene.set_pose` — a pose given whole, in the table frame: the 3D view's drag, or
+  one typed in the Place page's box;
 * :meth:`~ReviewScene.snap` — the place stage's fit (:func:`tdof20.annotate.place.refine_placement`:
-  ICP, set upright, the quality gate) from where the object was put, on the reconstruction's object
-  points within reach of it (so a cluster the reconstruction cut in pieces, or the wrong cluster,
-  does not matter); a fit that fails the gate is not written;
+  ICP, set upright, the quality gate) from the object's distinct turns about the table normal, on
+  the reconstruction's object points within reach of them (so a cluster the reconstruction cut in
+  pieces, or the wrong cluster, does not matter), each judged in the images too
+  (:func:`tdof20.review.gates.snap_alternatives`); written when one alternative is told apart,
+  else the reviewer chooses;
 * :meth:`~ReviewScene.assign` — the model stage's decision made by a person: this object is that
   cluster (the model stage's quick upright fit puts it there);
-* :meth:`~ReviewScene.verdict` — accept or reject frames, or a whole arm position;
+* :meth:`~ReviewScene.verdict` — accept or reject frames, or a whole arm position, or one object
+  in frames;
 * :meth:`~ReviewScene.undo` — take back the last correction (an entry too);
-* :meth:`~ReviewScene.relabel` — rerun place, label and QA with the scene's own options (``work/config.json``).
+* :meth:`~ReviewScene.relabel` — rerun place, label and QA with the scene's own options
+  (``work/config.json``), in a child process (:mod:`tdof20.review.relabel`) that dies with the app.
+
+Every pose a person gives (nudge, drag, typed, assign) passes the gates of :mod:`tdof20.review.gates`
+before it is journalled: the place stage's fit gate and the label gate in a few frames. A nudge or
+drag that does not pass is kept as the object's *draft* (shown, not journalled, not labelled; the
+next nudge or a snap goes on from it); a typed pose that does not pass is refused.
+
+The journal's last entry id is the scene's ``revision``; a correction made from an older one
+(``base_revision``) is refused (:class:`Stale`). A change on disk by another program (a
+``tdof20 annotate`` run) is noticed at the next request (:meth:`~ReviewScene.refresh`).
 
 The table frame: origin where the turntable axis meets the table top, z along the table normal
 (towards the camera side), x the reference camera's x axis laid onto the table. Poses in the
@@ -36,7 +50,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from tdof20.annotate.config import AnnotateConfig, annotate_config_from_dict
 from tdof20.annotate.corrections import (
     REJECTED,
     Corrections,
@@ -47,27 +60,50 @@ from tdof20.annotate.corrections import (
 )
 from tdof20.annotate.fusion import load_reconstruction, point_cloud, read_ply_points
 from tdof20.annotate.models import fit_model
-from tdof20.annotate.pipeline import annotate
 from tdof20.annotate.place import (
     T_arr,
     T_list,
     load_meshes,
     model_samples,
     pose_figures,
-    refine_placement,
 )
 from tdof20.annotate.registration import RegistrationResult
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, read_png
+from tdof20.formats.bop_models import read_models_info
 from tdof20.formats.io import encode_png
 from tdof20.geometry import rotation_matrix
+from tdof20.review import gates
+from tdof20.review.gates import NUDGE_MAX_DEG, NUDGE_MAX_MM, SNAP_REACH_MM, jsonable
+from tdof20.review.relabel import Relabeller, scene_config
 from tdof20.viz import object_colour
 
-__all__ = ["NUDGE_AXES", "SNAP_REACH_MM", "ReviewScene"]
+__all__ = ["NUDGE_AXES", "SNAP_REACH_MM", "GateRefused", "ReviewScene", "Stale", "scene_config"]
 
 NUDGE_AXES = ("x", "y", "z", "rx", "ry", "rz")   # mm along, degrees about, the table frame's axes
-SNAP_REACH_MM = 20.0     # snap fits the object points within this of the model where it was put
 _MIN_WIDTH = 480         # frame images are enlarged (integer factor) to at least this width
+# what a tdof20 annotate run rewrites: a change of any of them is a change of the scene on disk
+_WATCHED = ("work/state.json", "work/config.json", "work/registration.json", "work/fits.json",
+            "work/placements.json", "work/label.json", "work/summary.json", "work/evaluation.json",
+            "work/reconstruction/reconstruction.json", "scene_gt.json")
+
+
+class GateRefused(TdofError):
+    """A pose the gates refused (one line); ``figures``: what they measured; ``draft``: whether it
+    was kept as the object's draft."""
+
+    def __init__(self, message: str, figures: dict | None = None, draft: bool = False):
+        super().__init__(message)
+        self.figures, self.draft = figures or {}, draft
+
+
+class Stale(TdofError):
+    """A correction made from an older revision of the journal than the scene's."""
+
+    def __init__(self, base: int, revision: int):
+        super().__init__(f"the scene changed since this page loaded it (journal revision {base}, now {revision}: "
+                         f"another tab or program made a correction): reload and look again")
+        self.base, self.revision = base, revision
 
 
 @dataclass
@@ -80,15 +116,20 @@ class ObjectView:
     T_ref_model: np.ndarray      # the pose shown: the reviewer's, else the placement, else the matching fit
     status: str                  # placed | failed | corrected
     pending: bool                # the reviewer's pose is not yet what placements.json holds (relabel)
-    fitness: float | None
+    fitness: float | None        # the place stage's figures of the journalled / placed pose
     score_mm: float | None
     reason: str                  # why it failed (failed objects)
+    draft: dict | None = None    # a pose the gates refused, shown until it passes or is discarded
+    flag: str = ""               # the place stage's flag of the object (the twin check)
 
-    def to_dict(self, T_table_ref: np.ndarray) -> dict:
+    def to_dict(self, T_table_ref: np.ndarray, figures: dict | None = None) -> dict:
+        d = self.draft
         return {"index": self.index, "obj_id": self.obj_id, "cluster": self.cluster,
                 "T_ref_model": T_list(self.T_ref_model), "T_table_model": T_list(T_table_ref @ self.T_ref_model),
                 "status": self.status, "pending": self.pending, "fitness": self.fitness, "score_mm": self.score_mm,
-                "reason": self.reason, "colour": [int(c) for c in object_colour(self.obj_id)]}
+                "reason": self.reason, "colour": [int(c) for c in object_colour(self.obj_id)], "flag": self.flag,
+                "figures": figures,
+                "draft": None if d is None else {"how": d["how"], "reason": d["reason"], "gates": d["gates"]}}
 
 
 def _rigid(T: np.ndarray, what: str) -> np.ndarray:
@@ -124,27 +165,64 @@ class ReviewScene:
         self.session = RawSession.open(raw)
         self.info = self.session.info
         self.lock = threading.RLock()
-        self.cfg = self._config()
-        self._meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._samples: dict[int, np.ndarray] = {}
-        self._rec: tuple[dict, list[np.ndarray]] | None = None
+        self.drafts: dict[int, dict] = {}       # object index -> {T_ref_model, how, reason, gates, cluster}
+        self.scene_version = 0                   # +1 at every reload (a relabel, a change on disk)
+        self.changed_on_disk: str | None = None  # when a change by another program was last noticed
+        self.relabeller = Relabeller()
         self.reload()
 
     # ------------------------------------------------------------------ reading the scene
-    def _config(self) -> AnnotateConfig:
-        """The options of the scene's last annotate run (``work/config.json``; defaults if absent)."""
-        p = self.work / "config.json"
-        if not p.exists():
-            return AnnotateConfig()
-        d = read_json(p)
-        d = {k: ({kk: vv for kk, vv in v.items() if vv is not None} if isinstance(v, dict) else v)
-             for k, v in d.items() if v is not None}
-        return annotate_config_from_dict(d, str(p))
+    def _signature(self) -> tuple:
+        out = []
+        for name in _WATCHED:
+            try:
+                st = (self.path / name).stat()
+                out.append((name, st.st_mtime_ns, st.st_size))
+            except FileNotFoundError:
+                out.append((name, None, None))
+        return tuple(out)
+
+    def refresh(self) -> bool:
+        """Reload when another program (a ``tdof20 annotate`` run) changed the scene on disk since
+        the last reload; True when it did. Drafts are dropped then (their frame may have moved).
+        Never waits: while a correction or a relabel holds the scene, nothing is looked at."""
+        if not self.lock.acquire(blocking=False):
+            return False
+        try:
+            if self._signature() == self._sig:
+                return False
+            import datetime as _dt
+
+            self.drafts.clear()
+            self.reload()
+            self.changed_on_disk = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            return True
+        finally:
+            self.lock.release()
+
+    def revision(self, entries: list[dict] | None = None) -> int:
+        """The journal's last entry id (0: no entry)."""
+        entries = read_journal(self.work) if entries is None else entries
+        return int(entries[-1]["id"]) if entries else 0
+
+    def check_revision(self, base: int | None) -> None:
+        """Refuse (:class:`Stale`) a correction made from another revision than the scene's."""
+        if base is not None and int(base) != self.revision():
+            raise Stale(int(base), self.revision())
 
     def reload(self) -> None:
-        """Read what the pipeline wrote (again, after a relabel)."""
+        """Read what the pipeline wrote (again, after a relabel or a change on disk)."""
         with self.lock:
             w = self.work
+            self._sig = self._signature()
+            self.scene_version += 1
+            self.cfg = scene_config(w)
+            self._meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            self._samples: dict[int, np.ndarray] = {}
+            self._symmetry: dict[int, dict] = {}
+            self._figures: dict[tuple, dict] = {}
+            self._raycaster = None
+            self._opaque: dict[tuple[int, int], np.ndarray] = {}
             self.reg = RegistrationResult.load(w / "registration.json") if (w / "registration.json").exists() else None
             self.fits = read_json(w / "fits.json") if (w / "fits.json").exists() else None
             self.placements = read_json(w / "placements.json") if (w / "placements.json").exists() else None
@@ -212,9 +290,84 @@ class ReviewScene:
             self._samples.update(model_samples({obj_id: self.mesh(obj_id)}, self.cfg.place.fit_samples))
         return self._samples[obj_id]
 
+    def symmetry(self, obj_id: int) -> dict:
+        """The object's models_info.json entry (its symmetries)."""
+        if obj_id not in self._symmetry:
+            try:
+                self._symmetry[obj_id] = read_models_info(self.models_dir()).get(obj_id) or {}
+            except TdofError:
+                self._symmetry[obj_id] = {}
+        return self._symmetry[obj_id]
+
+    # ------------------------------------------------------------------ frames for the checks
+    def check_frames(self, n: int = gates.CHECK_FRAMES) -> list[tuple[int, int]]:
+        """Up to ``n`` registered frames with an opaque twin, spread around the turntable (and
+        over the arm positions): the frames of the visible check and the Place page's outlines."""
+        if self.reg is None:
+            return []
+        cand = [(a, k) for k in range(self.info.steps) for a in range(self.info.n_arms)
+                if self._usable(a, k) and self.session.has_frame("opaque", a, k)]
+        if len(cand) <= n:
+            return cand
+        picks = [cand[int(round(i * len(cand) / n))] for i in range(n)]
+        # round-robin over the arm positions where the steps allow it
+        out = []
+        for i, (a, k) in enumerate(picks):
+            want = i % self.info.n_arms
+            out.append((want, k) if (want, k) in cand else (a, k))
+        return list(dict.fromkeys(out))
+
+    def _usable(self, a: int, k: int) -> bool:
+        try:
+            fr = self.reg.frame(a, k)
+        except KeyError:
+            return False
+        return (self.reg.usable(a, k) and fr.T_ref_frame is not None
+                and bool(np.all(np.isfinite(fr.T_ref_frame))))
+
+    def render_frame(self, arm: int, step: int, override: dict[int, np.ndarray]) -> tuple[Any, np.ndarray, list[int]]:
+        """The label stage's rendering of frame (arm, step): every object where the review shows it
+        (``override``: {index: T_ref_model} instead; a failed object only when overridden), ray cast
+        in the box around them; with the frame's opaque depth in true millimetres cut to that box,
+        and the object index of each rendered instance."""
+        from tdof20.geometry.raycast import ModelRaycaster
+
+        session = self.reg.corrected(self.session) if hasattr(self.reg, "corrected") else self.session
+        cam = session.info.camera
+        obs = self.objects()
+        if self._raycaster is None:
+            self._raycaster = ModelRaycaster({o.obj_id: self.mesh(o.obj_id) for o in obs}, cam)
+        if (arm, step) not in self._opaque:
+            self._opaque[(arm, step)] = session.load_depth("opaque", arm, step).astype(np.float32) * np.float32(
+                cam.depth_scale)
+        T_frame_ref = np.linalg.inv(self.reg.frame(arm, step).T_ref_frame)
+        order, poses = [], []
+        for o in obs:
+            if o.index in override or o.status != "failed":
+                T = override.get(o.index, o.T_ref_model)
+                order.append(o.index)
+                poses.append((o.obj_id, T_frame_ref @ np.asarray(T, float)))
+        lab = self._raycaster.render_box(poses)
+        v0, v1, u0, u1 = lab.box
+        return lab, self._opaque[(arm, step)][v0:v1, u0:u1], order
+
+    def figures(self, ob: "ObjectView") -> dict | None:
+        """The place stage's figures (fitness, mean distance) of the pose shown, on the object points
+        near it: recomputed for every new pose (a nudge, a drag)."""
+        if self.rec_meta is None or self.fits is None:
+            return None
+        key = (ob.index, np.round(ob.T_ref_model, 6).tobytes())
+        if key not in self._figures:
+            near = gates.near_points(self, ob.obj_id, [ob.T_ref_model])
+            f = pose_figures(self.samples(ob.obj_id), near, ob.T_ref_model, self.cfg.fit.icp_mm[-1])
+            self._figures[key] = {"fitness": round(f[0], 4), "rmse_mm": round(f[1], 4), "score_mm": round(f[2], 4),
+                                  "points": int(len(near))}
+        return self._figures[key]
+
     # ------------------------------------------------------------------ what the review shows
-    def objects(self, corr: Corrections | None = None) -> list[ObjectView]:
-        """Every object of fits.json with the pose the review shows and its state."""
+    def objects(self, corr: Corrections | None = None, drafts: bool = True) -> list[ObjectView]:
+        """Every object of fits.json with the pose the review shows and its state (``drafts``:
+        an object's draft pose instead of its journalled one, where it has one)."""
         if self.fits is None:
             return []
         corr = corr or self.corrections()
@@ -235,15 +388,22 @@ class ReviewScene:
                 T = T_arr(c["T_ref_model"])
                 pending = p is None or not np.allclose(T_arr(p["T_ref_model"]), T, atol=1e-6)
                 cluster = int(c["cluster"]) if c.get("cluster") is not None else int(e["cluster"])
-                out.append(ObjectView(i, o, cluster, T, "corrected", pending, p and p.get("fitness"),
-                                      p and p.get("score_mm"), ""))
+                ob = ObjectView(i, o, cluster, T, "corrected", pending, p and p.get("fitness"),
+                                p and p.get("score_mm"), "")
             elif p is not None:
-                out.append(ObjectView(i, o, int(p["cluster"]), T_arr(p["T_ref_model"]),
-                                      "corrected" if p.get("corrected") else "placed", False, p.get("fitness"),
-                                      p.get("score_mm"), ""))
+                ob = ObjectView(i, o, int(p["cluster"]), T_arr(p["T_ref_model"]),
+                                "corrected" if p.get("corrected") else "placed", False, p.get("fitness"),
+                                p.get("score_mm"), "", flag=str(p.get("flag") or ""))
             else:
-                out.append(ObjectView(i, o, int(e["cluster"]), T_arr(e["T_ref_model"]), "failed", False, None, None,
-                                      (f or {}).get("reason", "not placed: the place stage has not run")))
+                ob = ObjectView(i, o, int(e["cluster"]), T_arr(e["T_ref_model"]), "failed", False, None, None,
+                                (f or {}).get("reason", "not placed: the place stage has not run"))
+            d = self.drafts.get(i) if drafts else None
+            if d is not None:
+                ob.draft = d
+                ob.T_ref_model = T_arr(d["T_ref_model"])
+                if d.get("cluster") is not None:
+                    ob.cluster = int(d["cluster"])
+            out.append(ob)
         return out
 
     def object(self, index: int, corr: Corrections | None = None) -> ObjectView:
@@ -254,7 +414,7 @@ class ReviewScene:
 
     def frames(self, corr: Corrections | None = None) -> list[dict]:
         """Every planned frame (arm x step): its image id, whether labelled, the reasons it was
-        flagged or skipped, and the reviewer's verdict."""
+        flagged or skipped, the reviewer's verdict and the objects rejected in it."""
         corr = corr or self.corrections()
         steps = self.info.steps
         reasons: dict[tuple[int, int], list[str]] = {}
@@ -274,8 +434,10 @@ class ReviewScene:
                 rs = reasons.get((a, k), [])
                 status = ("rejected" if v == "reject" else "labelled" if labelled
                           else "flagged" if rs else "not labelled")
+                rej = corr.rejected_objects(a, k)
                 out.append({"arm": a, "step": k, "im_id": im, "labelled": labelled, "reasons": rs, "verdict": v,
-                            "status": status, "unresolved": bool(not labelled and v != "reject")})
+                            "status": status, "unresolved": bool(not labelled and v != "reject"),
+                            "rejected_objects": [{"index": i, "obj_id": o} for i, o in sorted(rej.items())]})
         return out
 
     def state(self) -> dict:
@@ -287,21 +449,27 @@ class ReviewScene:
             undo = undo_target(corr.entries)
             unresolved = [f for f in frames if f["unresolved"]]
             failed = [o for o in objects if o.status == "failed"]
-            return {
+            return jsonable({
                 "scene": str(self.path), "scene_id": self.info.scene_id, "raw": str(self.raw),
                 "n_arms": self.info.n_arms, "steps": self.info.steps, "step_deg": self.info.step_deg,
-                "objects": [o.to_dict(self.T_table_ref) for o in objects],
+                "objects": [o.to_dict(self.T_table_ref, self.figures(o)) for o in objects],
                 "frames": frames, "T_table_ref": T_list(self.T_table_ref),
                 "clusters": len((self.rec_meta or {}).get("clusters", [])),
                 "labelled": sum(f["labelled"] for f in frames),
                 "unresolved": len(unresolved) + len(failed),
                 "pending": any(o.pending for o in objects) or self._verdicts_pending(corr),
+                "drafts": sorted(self.drafts),
                 "journal": corr.entries, "undo": undo,
+                "revision": self.revision(corr.entries), "scene_version": self.scene_version,
+                "changed_on_disk": self.changed_on_disk,
+                "check_frames": [list(f) for f in self.check_frames()],
+                "limits": {"nudge_mm": NUDGE_MAX_MM, "nudge_deg": NUDGE_MAX_DEG, "drag_mm": gates.DRAG_MAX_MM,
+                           "drag_deg": gates.DRAG_MAX_DEG},
                 "stages": self._stages(),
                 "stage_errors": {k: v["error"] for k, v in (self.summary.get("stages") or {}).items() if v.get("error")},
                 "evaluation": (self.evaluation or {}).get("all"),
                 "partial": bool(self.summary.get("partial")),
-            }
+            })
 
     def _stages(self) -> dict[str, str]:
         """Per stage: "failed" (the last run's error), "finished" or "not run" (work/state.json)."""
@@ -315,17 +483,22 @@ class ReviewScene:
 
     def _verdicts_pending(self, corr: Corrections) -> bool:
         """A verdict the labels do not show yet: a rejected frame still labelled, an accepted
-        flagged frame not labelled nor refused by the label gate since."""
+        flagged frame not labelled nor refused by the label gate since, an object rejected in a
+        frame still labelled there."""
         skipped = {(s["arm"], s["step"]) for s in (self.label or {}).get("skipped") or []
                    if not s["reason"].startswith("registration") and not s["reason"].startswith(REJECTED)}
         flagged = {(a, k) for a, k, _ in self.reg.flagged_frames()} if self.reg is not None else set()
         for a in range(self.info.n_arms):
             for k in range(self.info.steps):
                 v = corr.verdict(a, k)
-                labelled = bool(self.gt.get(a * self.info.steps + k))
+                gt = self.gt.get(a * self.info.steps + k) or []
+                labelled = bool(gt)
                 if v == "reject" and labelled:
                     return True
                 if v == "accept" and (a, k) in flagged and not labelled and (a, k) not in skipped:
+                    return True
+                rej = set(corr.rejected_objects(a, k).values())
+                if rej and v != "reject" and any(int(e["obj_id"]) in rej for e in gt):
                     return True
         return False
 
@@ -334,13 +507,48 @@ class ReviewScene:
         V = self.mesh(obj_id)[0]
         return T[:3, :3] @ (0.5 * (V.min(0) + V.max(0))) + T[:3, 3]
 
+    def _centre_model(self, obj_id: int) -> np.ndarray:
+        V = self.mesh(obj_id)[0]
+        return 0.5 * (V.min(0) + V.max(0))
+
+    def _hand(self, ob: ObjectView, T: np.ndarray, how: str, entry: dict, keep_draft: bool) -> dict:
+        """A pose a person gave, through the gates (:mod:`tdof20.review.gates`): journalled as
+        ``entry`` (with the gates' figures) when it passes; else kept as the object's draft
+        (``keep_draft``) or not, and refused (:class:`GateRefused`)."""
+        g = gates.place_gate(self, ob.obj_id, T)
+        figs = {"place": g.figures}
+        reason = g.reason
+        if g.ok:
+            v = gates.visible_check(self, ob.index, T)
+            figs["visible"] = v.figures
+            reason = v.reason
+        figs = jsonable(figs)
+        cluster = entry.get("cluster", (ob.draft or {}).get("cluster"))
+        if not reason:
+            e = dict(entry)
+            e["detail"] = {**(e.get("detail") or {}), "gates": figs}
+            if cluster is not None and e["op"] == "place":
+                e["cluster"] = int(cluster)
+            out = append_entry(self.work, e)
+            self.drafts.pop(ob.index, None)
+            return {"entry": out, "gates": figs}
+        if keep_draft:
+            self.drafts[ob.index] = {"T_ref_model": T_list(T), "how": how, "reason": reason, "gates": figs,
+                                     "cluster": cluster}
+        raise GateRefused(f"not saved: {reason}" + (" (kept as a draft: go on from it, or snap)" if keep_draft else ""),
+                          figs, draft=keep_draft)
+
     def nudge(self, index: int, axis: str, amount: float) -> dict:
-        """Move (mm) or turn (deg) object ``index`` along / about a table-frame axis; one entry."""
+        """Move (mm) or turn (deg) object ``index`` along / about a table-frame axis, from the pose
+        shown (its draft, if any); journalled when the result passes the gates, else its draft."""
         if axis not in NUDGE_AXES:
             raise TdofError(f"nudge axis must be one of {', '.join(NUDGE_AXES)}, got '{axis}'")
         amount = float(amount)
-        if not math.isfinite(amount) or abs(amount) > (500.0 if axis in "xyz" else 180.0):
-            raise TdofError(f"nudge amount must be finite and at most {'500 mm' if axis in 'xyz' else '180 deg'}")
+        lim = NUDGE_MAX_MM if axis in "xyz" else NUDGE_MAX_DEG
+        if not math.isfinite(amount) or abs(amount) > lim:
+            raise GateRefused(f"nudge limit: {amount:g} {'mm' if axis in 'xyz' else 'deg'} is more than the "
+                              f"{lim:g} {'mm' if axis in 'xyz' else 'deg'} a nudge may {'move' if axis in 'xyz' else 'turn'}"
+                              f" an object: nudge in steps, or type the pose")
         with self.lock:
             ob = self.object(index)
             T = ob.T_ref_model.copy()
@@ -353,56 +561,85 @@ class ReviewScene:
                 Rn = rotation_matrix(R_tr[k], math.radians(amount))
                 T[:3, :3] = Rn @ T[:3, :3]
                 T[:3, 3] = c + Rn @ (T[:3, 3] - c)
-            return append_entry(self.work, {"op": "place", "object": index, "obj_id": ob.obj_id,
-                                             "T_ref_model": T_list(T), "how": "nudge",
-                                             "detail": {"axis": axis, "amount": amount,
-                                                        "unit": "mm" if axis in "xyz" else "deg"}})
+            return self._hand(ob, T, "nudge", {"op": "place", "object": index, "obj_id": ob.obj_id,
+                                               "T_ref_model": T_list(T), "how": "nudge",
+                                               "detail": {"axis": axis, "amount": amount,
+                                                          "unit": "mm" if axis in "xyz" else "deg",
+                                                          **({"from": "draft"} if ob.draft else {})}},
+                              keep_draft=True)
 
     def set_pose(self, index: int, T_table_model: Any, how: str = "drag") -> dict:
-        """Object ``index`` at a pose given in the table frame (16 numbers, row-major); one entry."""
+        """Object ``index`` at a pose given in the table frame (16 numbers, row-major): a drag (at
+        most ``DRAG_MAX_MM`` / ``DRAG_MAX_DEG`` from the pose shown; kept as the draft when the gates
+        refuse it) or a typed pose (``how`` "set": refused whole when the gates refuse it)."""
+        how = how if how in ("drag", "set") else "set"
         T = _rigid(np.asarray(T_table_model, float).reshape(4, 4) if np.size(T_table_model) == 16 else np.zeros(0),
                    "pose")
         with self.lock:
             ob = self.object(index)
             T_ref = np.linalg.inv(self.T_table_ref) @ T
-            return append_entry(self.work, {"op": "place", "object": index, "obj_id": ob.obj_id,
-                                             "T_ref_model": T_list(T_ref), "how": how if how in ("drag", "set") else "set"})
+            lim = gates.move_limit(how, ob.T_ref_model, T_ref, self._centre_model(ob.obj_id))
+            if lim:
+                raise GateRefused(f"not saved: {lim}")
+            return self._hand(ob, T_ref, how, {"op": "place", "object": index, "obj_id": ob.obj_id,
+                                               "T_ref_model": T_list(T_ref), "how": how}, keep_draft=how == "drag")
+
+    def discard(self, index: int) -> dict:
+        """Forget object ``index``'s draft (nothing journalled)."""
+        with self.lock:
+            self.object(index)
+            d = self.drafts.pop(index, None)
+            if d is None:
+                raise TdofError(f"object {index} has no draft to discard")
+            return {"entry": None, "discarded": index}
 
     def object_points(self) -> np.ndarray:
         """The reconstruction's object points: every cluster's (what turned with the table)."""
         _, clusters = self.reconstruction()
         return np.concatenate(clusters) if clusters else np.zeros((0, 3))
 
-    def snap(self, index: int, reach_mm: float = SNAP_REACH_MM) -> dict:
-        """The place stage's fit from where object ``index`` was put, on the object points within
-        ``reach_mm`` of the posed model; one entry when the fit passes the quality gate, else a
-        TdofError saying why (nothing written)."""
-        from scipy.spatial import cKDTree
-
+    def snap(self, index: int, turn_deg: float | None = None) -> dict:
+        """The place stage's fit from the distinct turns of object ``index`` (its pose shown, draft
+        included; ``turn_deg``: that turn only), each judged in the images
+        (:func:`~tdof20.review.gates.snap_alternatives`). One entry when an alternative is told
+        apart (or the one asked for passes the gates); else nothing written and the alternatives
+        returned for the reviewer to choose from (``entry`` None), or a refusal when none passes."""
         with self.lock:
             ob = self.object(index)
-            S = self.samples(ob.obj_id)
-            P = self.object_points()
-            d, _ = cKDTree(S @ ob.T_ref_model[:3, :3].T + ob.T_ref_model[:3, 3]).query(P, distance_upper_bound=reach_mm)
-            near = P[np.isfinite(d)]
-            if len(near) < 50:
-                raise TdofError(f"snap: only {len(near)} reconstruction points within {reach_mm:g} mm of object "
-                                f"{ob.obj_id} where it was put: move it onto its points first")
-            r = refine_placement(S, self.mesh(ob.obj_id)[0], near, ob.T_ref_model, self.up, self.cfg)
-            if r["bad"]:
-                raise TdofError(f"snap: the fit from here fails the quality gate ({', '.join(r['bad'])}): move "
-                                f"object {ob.obj_id} closer to its points and snap again")
-            moved = np.linalg.norm(r["T_ref_model"][:3, 3] - ob.T_ref_model[:3, 3])
-            return append_entry(self.work, {"op": "place", "object": index, "obj_id": ob.obj_id,
-                                             "T_ref_model": T_list(r["T_ref_model"]), "how": "snap",
-                                             "detail": {"fitness": round(r["fitness"], 4),
-                                                        "score_mm": round(r["score_mm"], 4),
-                                                        "rmse_mm": round(r["rmse_mm"], 4), "points": len(near),
-                                                        "moved_mm": round(float(moved), 3), "note": r["note"]}})
+            turns = None if turn_deg is None else [float(turn_deg)]
+            if turns is not None and not (math.isfinite(turns[0]) and -360.0 <= turns[0] <= 360.0):
+                raise TdofError("snap: turn_deg must be within -360..360")
+            res = gates.snap_alternatives(self, index, ob.T_ref_model, turns)
+            alts = res["alternatives"]
+            show = [{k: a.get(k) for k in ("turn_deg", "fitness", "score_mm", "agree", "see_through", "disagree",
+                                           "reason", "T_ref_model")} for a in alts]
+            for a in show:
+                a["T_table_model"] = T_list(self.T_table_ref @ T_arr(a["T_ref_model"]))
+            if res["chosen"] is None:
+                if not any(not a["bad"] and a.get("visible_ok") for a in alts):
+                    raise GateRefused(res["reason"], {"alternatives": jsonable(show)})
+                return {"entry": None, "alternatives": jsonable(show), "reason": res["reason"]}
+            best = alts[res["chosen"]]
+            T = T_arr(best["T_ref_model"])
+            moved = np.linalg.norm(self._centre(ob.obj_id, T) - self._centre(ob.obj_id, ob.T_ref_model))
+            cluster = (ob.draft or {}).get("cluster")
+            e = {"op": "place", "object": index, "obj_id": ob.obj_id, "T_ref_model": T_list(T), "how": "snap",
+                 "detail": jsonable({"fitness": best["fitness"], "score_mm": best["score_mm"], "rmse_mm": best["rmse_mm"],
+                                     "points": res["points"], "moved_mm": round(float(moved), 3),
+                                     "note": best["note"], "turn_deg": best["turn_deg"],
+                                     "agree": best.get("agree"), "see_through": best.get("see_through"),
+                                     "alternatives": [{k: a[k] for k in ("turn_deg", "fitness", "score_mm",
+                                                                         "disagree")} for a in show]})}
+            if cluster is not None:
+                e["cluster"] = int(cluster)
+            entry = append_entry(self.work, e)
+            self.drafts.pop(index, None)
+            return {"entry": entry, "alternatives": jsonable(show), "chosen": 0, "reason": ""}
 
     def assign(self, index: int, cluster: int) -> dict:
         """Object ``index`` is cluster ``cluster``: the model stage's quick upright fit puts it
-        there; one entry."""
+        there; one entry when that pose passes the gates, else it is the object's draft (with the
+        cluster) to snap from."""
         with self.lock:
             meta, clusters = self.reconstruction()
             if not 0 <= int(cluster) < len(clusters):
@@ -415,13 +652,16 @@ class ReviewScene:
             quick = dataclasses.replace(self.cfg.fit, icp_mm=tuple(pc.match_icp_mm))
             f = fit_model(samples, thin, quick, up=self.up, model_z_min=float(V[:, 2].min()),
                           table_plane=np.asarray(meta["plane"], float))
-            return append_entry(self.work, {"op": "assign", "object": index, "obj_id": ob.obj_id,
-                                             "cluster": int(cluster), "T_ref_model": T_list(f.T_ref_model),
-                                             "detail": {"score_mm": round(float(f.score), 4),
-                                                        "fitness": round(float(f.fitness), 4)}})
+            return self._hand(ob, f.T_ref_model, "assign",
+                              {"op": "assign", "object": index, "obj_id": ob.obj_id, "cluster": int(cluster),
+                               "T_ref_model": T_list(f.T_ref_model),
+                               "detail": {"score_mm": round(float(f.score), 4), "fitness": round(float(f.fitness), 4)}},
+                              keep_draft=True)
 
-    def verdict(self, arm: int, steps: list[int] | None, verdict: str) -> dict:
-        """Accept, reject or clear frames of arm position ``arm`` (``steps`` None: all of them)."""
+    def verdict(self, arm: int, steps: list[int] | None, verdict: str, obj: int | None = None) -> dict:
+        """Accept, reject or clear frames of arm position ``arm`` (``steps`` None: all of them);
+        with ``obj`` (an object index): reject or clear that object only in those frames (they are
+        labelled without it)."""
         if not 0 <= int(arm) < self.info.n_arms:
             raise TdofError(f"no arm position {arm} (0..{self.info.n_arms - 1})")
         if steps is not None:
@@ -429,26 +669,38 @@ class ReviewScene:
             if bad:
                 raise TdofError(f"no step {bad[0]} (0..{self.info.steps - 1})")
         with self.lock:
-            return append_entry(self.work, {"op": "frames", "arm": int(arm),
-                                             "steps": None if steps is None else [int(k) for k in steps],
-                                             "verdict": verdict})
+            e = {"op": "frames", "arm": int(arm), "steps": None if steps is None else [int(k) for k in steps],
+                 "verdict": verdict}
+            if obj is not None:
+                if verdict not in ("reject", "clear"):
+                    raise TdofError("one object in a frame can be rejected or cleared, not accepted (accept the frame)")
+                ob = self.object(int(obj))
+                twins = [o.index for o in self.objects() if o.obj_id == ob.obj_id and o.index != ob.index]
+                if twins:
+                    raise TdofError(f"object {ob.obj_id} stands in this scene {len(twins) + 1} times (the label stage "
+                                    f"tells its instances apart by model only): reject the frame instead")
+                e.update(object=ob.index, obj_id=ob.obj_id)
+            return {"entry": append_entry(self.work, e)}
 
     def undo(self) -> dict:
-        """Take back the last correction not yet taken back (an ``undo`` entry)."""
+        """Take back the last correction not yet taken back (an ``undo`` entry); the draft of the
+        object it placed goes too (the view shows the journalled pose again)."""
         with self.lock:
             target = undo_target(read_journal(self.work))
             if target is None:
                 raise TdofError("nothing to undo")
-            return append_entry(self.work, {"op": "undo", "undoes": int(target["id"])})
+            if target.get("object") is not None and target["op"] in ("place", "assign"):
+                self.drafts.pop(int(target["object"]), None)
+            return {"entry": append_entry(self.work, {"op": "undo", "undoes": int(target["id"])})}
 
     def relabel(self) -> dict:
-        """Rerun place, label and QA with the scene's options and the journal; returns the
-        summary (a refusal is a TdofError, the journal kept)."""
+        """Rerun place, label and QA with the scene's options and the journal, in a child process
+        (:class:`~tdof20.review.relabel.Relabeller`: stopped with the app, and never outliving it);
+        returns the summary (a refusal is a TdofError, the journal kept). Drafts are not labelled."""
         with self.lock:
             md = None if (self.fits or {}).get("source") == "built" else self.models_dir()
             try:
-                summary = annotate(self.raw, self.path, models_dir=md, stages=("place", "label", "qa"), cfg=self.cfg,
-                                   progress=False)
+                summary = self.relabeller.run(self.path, self.raw, md)
             finally:
                 self.reload()
             lab = summary.get("label") or {}
@@ -458,10 +710,11 @@ class ReviewScene:
             return summary
 
     # ------------------------------------------------------------------ pictures
-    def frame_image(self, arm: int, step: int, kind: str) -> bytes:
+    def frame_image(self, arm: int, step: int, kind: str, selected: int | None = None) -> bytes:
         """PNG of a frame's colour image (``kind``: "rgb" the transparent phase, "opaque" its
         twin) with the labelled visible masks tinted and every object's model outline at the pose
-        the review shows (the reviewer's corrections included), in the object's colour."""
+        the review shows (the reviewer's corrections and drafts included), in the object's colour;
+        object ``selected``'s outline drawn wider, in white and its colour."""
         if kind not in ("rgb", "opaque"):
             raise TdofError(f"image kind must be rgb or opaque, got '{kind}'")
         if not (0 <= arm < self.info.n_arms and 0 <= step < self.info.steps):
@@ -493,10 +746,14 @@ class ReviewScene:
                 K[:2] *= scale
                 K[:2, 2] += 0.5 * (scale - 1)       # pixel centres of the enlarged image
                 T_frame_ref = np.linalg.inv(fr.T_ref_frame)
-                for ob in self.objects():
+                for ob in sorted(self.objects(), key=lambda o: o.index == selected):   # the selected one on top
                     sil = self._silhouette(ob.obj_id, T_frame_ref @ ob.T_ref_model, K, out.shape[:2])
                     cs, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
                     col = tuple(int(c) for c in object_colour(ob.obj_id))
+                    if ob.index == selected:
+                        cv2.drawContours(out, cs, -1, (255, 255, 255), 6)
+                        cv2.drawContours(out, cs, -1, col, 3)
+                        continue
                     cv2.drawContours(out, cs, -1, (0, 0, 0), 4)
                     cv2.drawContours(out, cs, -1, col, 2)
             return encode_png(out)

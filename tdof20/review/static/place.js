@@ -1,6 +1,8 @@
 // The 3D view: the reconstruction's points and the placed models in the table frame (z up, mm).
-// Nudges (keys, buttons), drags (TransformControls), snap and assign go to the API; each answer
-// carries the new state, and the view follows it.
+// Nudges (keys, buttons), drags (TransformControls), a typed pose, snap and assign go to the API;
+// each answer carries the new state (and the gates' figures), and the view follows it: the 3D
+// view, the outlines over two or three frames' images, the typed-pose box. A pose the gates
+// refuse is not journalled: a nudge's or drag's is kept as the object's draft.
 import * as THREE from "three";
 import { OrbitControls } from "/static/OrbitControls.js";
 import { TransformControls } from "/static/TransformControls.js";
@@ -10,6 +12,7 @@ const meshes = new Map();          // object index -> THREE.Mesh
 let state = null;
 let selected = Number(new URLSearchParams(location.search).get("object") ?? 0);
 let renderer = null, scene, camera, orbit, gizmo;
+const busy = () => reviewInflight > 0;
 
 function rowMajor(m) {             // three.js keeps column-major elements
   const e = m.elements;
@@ -35,18 +38,54 @@ function describe() {
   const o = objectState(selected);
   if (!o) return;
   const t = o.T_table_model;
-  let txt = `object ${o.obj_id} (#${o.index}, cluster ${o.cluster}): ${o.status}` + (o.pending ? ", relabel pending" : "");
+  let txt = `object ${o.obj_id} (#${o.index}, cluster ${o.cluster}): ${o.draft ? "draft (not saved)" : o.status}` +
+            (o.pending ? ", relabel pending" : "");
   txt += ` · at x ${t[3].toFixed(1)}, y ${t[7].toFixed(1)}, z ${t[11].toFixed(1)} mm`;
-  if (o.fitness !== null && o.fitness !== undefined) txt += ` · fitness ${o.fitness.toFixed(2)}, mean distance ${o.score_mm.toFixed(2)} mm`;
-  if (o.reason) txt += ` · ${o.reason}`;
+  const f = o.figures;   // recomputed for the pose shown: every nudge, drag, typed pose
+  if (f) txt += ` · here: fitness ${f.fitness.toFixed(2)}, mean distance ${f.score_mm.toFixed(2)} mm (${f.points} points)`;
+  if (o.reason && !o.draft) txt += ` · ${o.reason}`;
+  if (o.flag) txt += ` · ${o.flag}`;
   document.getElementById("objinfo").textContent = txt;
+  const g = document.getElementById("gate");
+  g.textContent = o.draft ? o.draft.reason : "";
+  g.className = o.draft ? "small err" : "small";
+  document.getElementById("discard").hidden = !o.draft;
+  const typed = document.getElementById("typed");
+  if (document.activeElement !== typed) typed.value = poseText(t);
 }
+
+// ---- the typed pose: x y z (mm), rz ry rx (deg; R = Rz Ry Rx), in the table frame
+const DEG = Math.PI / 180;
+function poseText(T) {
+  const rz = Math.atan2(T[4], T[0]), ry = Math.asin(Math.max(-1, Math.min(1, -T[8]))), rx = Math.atan2(T[9], T[10]);
+  return [T[3], T[7], T[11]].map(v => v.toFixed(1)).concat([rz, ry, rx].map(v => (v / DEG).toFixed(2))).join(" ");
+}
+function parsePose(text) {
+  const v = text.trim().split(/[\s,]+/).map(Number);
+  if (v.length === 16 && v.every(Number.isFinite)) return v;
+  if (v.length !== 6 || !v.every(Number.isFinite)) throw new Error("type 6 numbers (x y z mm, rz ry rx deg) or 16 (a 4x4 pose, row by row)");
+  const [x, y, z] = v, [a, b, c] = v.slice(3).map(d => d * DEG);
+  const ca = Math.cos(a), sa = Math.sin(a), cb = Math.cos(b), sb = Math.sin(b), cc = Math.cos(c), sc = Math.sin(c);
+  return [ca * cb, ca * sb * sc - sa * cc, ca * sb * cc + sa * sc, x,
+          sa * cb, sa * sb * sc + ca * cc, sa * sb * cc - ca * sc, y,
+          -sb, cb * sc, cb * cc, z, 0, 0, 0, 1];
+}
+
+// ---- the outlines over the check frames' images
+let views = 0;
+function refreshViews() {
+  views++;
+  document.querySelectorAll("#views img").forEach(img => {
+    img.src = `/img/frame/${img.dataset.arm}/${img.dataset.step}/opaque.png?object=${selected}&v=${views}`;
+  });
+}
+window.reviewViews = () => views;
 
 function apply(newState) {
   state = newState;
   for (const o of state.objects) {
     const b = document.getElementById(`badge-${o.index}`);
-    if (b) { b.textContent = o.status + (o.pending ? " *" : ""); b.className = `badge ${o.status}`; }
+    if (b) { b.textContent = (o.draft ? "draft" : o.status) + (o.pending ? " *" : ""); b.className = `badge ${o.draft ? "draft" : o.status}`; }
     const mesh = meshes.get(o.index);
     if (mesh) setPose(mesh, o.T_table_model);
   }
@@ -58,6 +97,7 @@ function apply(newState) {
   describe();
   highlight();
   redraw();
+  refreshViews();
 }
 window.reviewAfter = (j) => { if (j.state) apply(j.state); };
 
@@ -72,22 +112,68 @@ function highlight() {
   if (r) r.checked = true;
 }
 
+function gateText(g) {
+  const p = g && g.place, v = g && g.visible;
+  let t = "";
+  if (p && p.fitness !== undefined) t += `fitness ${p.fitness.toFixed(2)}, mean distance ${p.score_mm.toFixed(2)} mm` +
+      (p.fit_score_mm !== undefined ? ` (the place stage's fit from here: ${p.fit_score_mm.toFixed(2)} mm)` : "");
+  if (v && v.agree !== undefined) t += ` · in the images ${(100 * v.agree).toFixed(0)} % agree with the opaque depth`;
+  return t;
+}
+
+function showAlternatives(alts, chosenTurn) {
+  const box = document.getElementById("alternatives"), tab = document.getElementById("alts");
+  box.hidden = !alts || !alts.length;
+  tab.innerHTML = "<tr><th>turn</th><th>fitness</th><th>mean distance</th><th>off the images</th><th></th></tr>";
+  for (const a of alts || []) {
+    const tr = document.createElement("tr");
+    const off = a.disagree === null || a.disagree === undefined ? "–" : `${(100 * a.disagree).toFixed(1)} %`;
+    tr.innerHTML = `<td>${a.turn_deg}°</td><td>${a.fitness.toFixed(2)}</td><td>${a.score_mm.toFixed(2)} mm</td><td>${off}</td><td></td>`;
+    tr.title = a.reason || "";
+    const td = tr.lastChild;
+    if (chosenTurn === a.turn_deg) td.textContent = "chosen";
+    else if (!a.reason) {
+      const b = document.createElement("button");
+      b.textContent = "Use"; b.dataset.turn = a.turn_deg;
+      // the alternative's own pose, through the gates as a typed one
+      b.addEventListener("click", () => act(`/api/objects/${selected}/pose`, {T_table_model: a.T_table_model, how: "set"},
+                                            `the alternative turned ${a.turn_deg}°`));
+      td.appendChild(b);
+    } else td.textContent = "refused";
+    tab.appendChild(tr);
+  }
+}
+
 async function act(path, body, what) {
   reviewSay(`${what}...`);
+  const res = document.getElementById("result");
   try {
     const j = await reviewApi(path, body);
     apply(j.state);
     const d = j.entry && j.entry.detail;
-    const res = document.getElementById("result");
+    showAlternatives(j.alternatives || [], j.entry && d ? d.turn_deg : null);
     if (j.entry && j.entry.how === "snap") {
-      res.textContent = `snap: fitness ${d.fitness}, mean distance ${d.score_mm} mm, moved ${d.moved_mm} mm (${d.points} points)`;
+      res.textContent = `snap: fitness ${d.fitness}, mean distance ${d.score_mm} mm, moved ${d.moved_mm} mm (${d.points} points)` +
+          (d.alternatives && d.alternatives.length > 1 ? `; turned ${d.turn_deg}° of ${d.alternatives.length} alternatives` : "");
     } else if (j.entry && j.entry.op === "assign") {
       res.textContent = `assigned to cluster ${j.entry.cluster}: fitness ${d.fitness}, mean distance ${d.score_mm} mm`;
+    } else if (j.entry && j.entry.op === "place") {
+      res.textContent = `saved: ${gateText(d.gates)}`;
+    } else if (!j.entry && j.alternatives) {
+      res.textContent = j.reason;
     }
-    reviewSay(`${what}: saved as entry #${j.entry.id}`);
+    reviewSay(j.entry ? `${what}: saved as entry #${j.entry.id}` : `${what}: ${j.reason || "nothing saved"}`, !j.entry);
     window.reviewLast = j;
   } catch (e) {
+    if (e.stale) return;
+    const j = e.body || {};
+    if (j.state) apply(j.state);
+    if (j.gates && j.gates.alternatives) showAlternatives(j.gates.alternatives, null);
+    res.textContent = j.gates ? gateText(j.gates) : "";
     reviewSay(e.message, true);
+    window.reviewLast = {entry: null, refused: e.message, draft: !!j.draft, gates: j.gates};
+  } finally {
+    window.reviewAnswers = (window.reviewAnswers || 0) + 1;
   }
 }
 
@@ -104,6 +190,7 @@ const KEYS = {ArrowLeft: ["x", -1], ArrowRight: ["x", 1], ArrowDown: ["y", -1], 
               v: ["ry", -1], c: ["ry", 1]};
 document.addEventListener("keydown", (ev) => {
   if (ev.target.closest("input[type=text], select, textarea") || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+  if (ev.repeat && busy()) return;   // a held key does not queue nudges faster than they are judged
   const k = ev.key.length === 1 ? ev.key.toLowerCase() : ev.key;
   if (KEYS[k]) { ev.preventDefault(); nudge(...KEYS[k]); }
   else if (k === "n") { ev.preventDefault(); document.getElementById("snap").click(); }
@@ -114,14 +201,22 @@ document.addEventListener("keydown", (ev) => {
     ev.preventDefault();
     const ids = state.objects.map(o => o.index);
     selected = ids[(ids.indexOf(selected) + 1) % ids.length];
-    describe(); highlight();
+    describe(); highlight(); refreshViews(); showAlternatives([], null);
   }
 });
 document.querySelectorAll("[data-nudge]").forEach(b =>
   b.addEventListener("click", () => nudge(b.dataset.nudge, Number(b.dataset.sign))));
 document.querySelectorAll("input[name=obj]").forEach(r =>
-  r.addEventListener("change", () => { selected = Number(r.value); describe(); highlight(); }));
+  r.addEventListener("change", () => { selected = Number(r.value); describe(); highlight(); refreshViews(); showAlternatives([], null); }));
 document.getElementById("snap").addEventListener("click", () => act(`/api/objects/${selected}/snap`, {}, "snap"));
+document.getElementById("discard").addEventListener("click", () => act(`/api/objects/${selected}/discard`, {}, "discard the draft"));
+function setTyped() {
+  let T;
+  try { T = parsePose(document.getElementById("typed").value); } catch (e) { reviewSay(e.message, true); return; }
+  return act(`/api/objects/${selected}/pose`, {T_table_model: T, how: "set"}, "typed pose");
+}
+document.getElementById("settyped").addEventListener("click", setTyped);
+document.getElementById("typed").addEventListener("keydown", (ev) => { if (ev.key === "Enter") { ev.preventDefault(); setTyped(); } });
 document.getElementById("assign").addEventListener("click", () =>
   act(`/api/objects/${selected}/assign`, {cluster: Number(document.getElementById("cluster").value)}, "assign"));
 
@@ -180,6 +275,7 @@ function startGL() {
 
 async function load() {
   state = await (await fetch("/api/state")).json();
+  reviewTake(state);
   if (startGL()) {
     const pts = await (await fetch("/api/scene3d")).json();
     const geo = new THREE.BufferGeometry();
