@@ -129,7 +129,7 @@ def _ids(text: Optional[str]) -> Optional[list[int]]:
 def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, step_deg: float, arm_positions: int,
                     width: int, height: int, seed: int, clutter: str = "", direction: str = "ccw",
                     record_direction: bool = True, hand_eye_error: str = "", step_jitter: float = 0.0,
-                    depth_bias: float = 1.0):
+                    depth_bias: float = 1.0, twin_offset: str = ""):
     if config is not None and sim:
         raise TdofError("give either a CONFIG file or --sim, not both")
     if config is None and not sim:
@@ -137,11 +137,12 @@ def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, s
     lab_given = [o for o, v in (("--clutter", clutter), ("--direction", direction != "ccw"),
                                 ("--no-record-direction", not record_direction),
                                 ("--hand-eye-error", hand_eye_error), ("--step-jitter", step_jitter),
-                                ("--depth-bias", depth_bias != 1.0)) if v]
+                                ("--depth-bias", depth_bias != 1.0), ("--twin-offset", twin_offset)) if v]
     if config is not None:
         if lab_given:
             raise TdofError(f"{', '.join(lab_given)} go with --sim; in a CONFIG set them in its [sim] table "
-                            f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg, depth_bias) and "
+                            f"(clutter, record_direction, hand_eye_error_mm/_deg, step_jitter_deg, depth_bias, "
+                            f"twin_offset_mm/_deg) and "
                             f"[turntable] direction")
         return load_config(config)
 
@@ -151,17 +152,23 @@ def _capture_config(config: Optional[Path], sim: bool, scene: str, steps: int, s
         raise TdofError(f"--clutter: unknown preset {', '.join(repr(b) for b in bad)} (known: {', '.join(clutter_names())})")
     if direction not in DIRECTIONS:
         raise TdofError(f"--direction must be {' or '.join(DIRECTIONS)} (seen from above), got '{direction}'")
-    try:
-        he = [float(x) for x in hand_eye_error.replace(" ", "").split(",") if x]
-    except ValueError:
-        he = None
-    if he is None or len(he) > 2:
-        raise TdofError(f"--hand-eye-error must be MM or MM,DEG (e.g. 2,0.5), got '{hand_eye_error}'")
-    he_mm, he_deg = (he + [0.0, 0.0])[:2]
+    he_mm, he_deg = _mm_deg(hand_eye_error, "--hand-eye-error", "2,0.5")
+    tw_mm, tw_deg = _mm_deg(twin_offset, "--twin-offset", "2,1")
     return sim_config(_scene(scene), steps=steps, step_deg=step_deg, n_arms=arm_positions, width=width, height=height,
                       seed=seed, clutter=names, direction=direction, record_direction=record_direction,
                       hand_eye_error_mm=he_mm, hand_eye_error_deg=he_deg, step_jitter_deg=step_jitter,
-                      depth_bias=depth_bias)
+                      depth_bias=depth_bias, twin_offset_mm=tw_mm, twin_offset_deg=tw_deg)
+
+
+def _mm_deg(text: str, option: str, example: str) -> tuple[float, float]:
+    """'MM' or 'MM,DEG' (an option's value) as two floats; '' is (0, 0)."""
+    try:
+        v = [float(x) for x in text.replace(" ", "").split(",") if x]
+    except ValueError:
+        v = None
+    if v is None or len(v) > 2:
+        raise TdofError(f"{option} must be MM or MM,DEG (e.g. {example}), got '{text}'")
+    return tuple((v + [0.0, 0.0])[:2])
 
 
 CONFIG_ARG = typer.Argument(None, help="capture config (TOML); leave out with --sim")
@@ -177,6 +184,8 @@ RECORD_DIRECTION = typer.Option(True, "--record-direction/--no-record-direction"
 HAND_EYE_ERROR = typer.Option("", help="--sim: hand-eye error MM[,DEG]: the camera really sits this far "
                                        "from the recorded mount (e.g. 2,0.5)")
 STEP_JITTER = typer.Option(0.0, help="--sim: step-angle error bound in degrees (uniform, per frame)")
+TWIN_OFFSET = typer.Option("", help="--sim: each opaque twin stands MM[,DEG] off its transparent object's slot "
+                                    "(moved along the table, turned about the table axis; e.g. 2,1)")
 DEPTH_BIAS = typer.Option(1.0, help="--sim: the camera's depth scale error, reported / true depth "
                                     "(1.02: depth reads 2 % long, as consumer stereo cameras often do)")
 
@@ -186,12 +195,12 @@ def capture_plan(config: Optional[Path] = CONFIG_ARG, sim: bool = SIM, scene: st
                  step_deg: float = STEP_DEG, arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT,
                  seed: int = SEED, clutter: str = CLUTTER, direction: str = DIRECTION,
                  record_direction: bool = RECORD_DIRECTION, hand_eye_error: str = HAND_EYE_ERROR,
-                 step_jitter: float = STEP_JITTER, depth_bias: float = DEPTH_BIAS,
+                 step_jitter: float = STEP_JITTER, depth_bias: float = DEPTH_BIAS, twin_offset: str = TWIN_OFFSET,
                  json_out: bool = typer.Option(False, "--json", help="print JSON")) -> None:
     """Print the sequence a session will run and its estimated duration; checks every arm target
     against the workspace limits. Touches no hardware."""
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
-                          direction, record_direction, hand_eye_error, step_jitter, depth_bias)
+                          direction, record_direction, hand_eye_error, step_jitter, depth_bias, twin_offset)
     d = describe(cfg)
     if json_out:
         print(json.dumps(d, indent=2))
@@ -224,11 +233,11 @@ def capture_run(config: Optional[Path] = CONFIG_ARG,
                 arm_positions: int = ARMS, width: int = WIDTH, height: int = HEIGHT, seed: int = SEED,
                 clutter: str = CLUTTER, direction: str = DIRECTION, record_direction: bool = RECORD_DIRECTION,
                 hand_eye_error: str = HAND_EYE_ERROR, step_jitter: float = STEP_JITTER,
-                depth_bias: float = DEPTH_BIAS,
+                depth_bias: float = DEPTH_BIAS, twin_offset: str = TWIN_OFFSET,
                 yes: bool = typer.Option(False, "--yes", help="do not wait for the operator (scripted runs)")) -> None:
     """Run (or resume) a capture session and write the raw session format."""
     cfg = _capture_config(config, sim, scene, steps, step_deg, arm_positions, width, height, seed, clutter,
-                          direction, record_direction, hand_eye_error, step_jitter, depth_bias)
+                          direction, record_direction, hand_eye_error, step_jitter, depth_bias, twin_offset)
     resume = "tdof20 " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     summary = run_capture(cfg, out, yes=yes, resume_command=resume)
     for line in summary.lines():

@@ -82,7 +82,7 @@ def _cast_alone(models, obj_id, K, size, R, t):
     sc = O3.t.geometry.RaycastingScene()
     sc.add_triangles(O3.core.Tensor(v.astype(np.float32)), O3.core.Tensor(np.asarray(m.faces, np.uint32)))
     w, h = size
-    u, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    u, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))  # pixel centres at integer (u, v)
     d = np.stack([(u - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     rays = np.concatenate([np.zeros_like(d), d], -1).astype(np.float32)
     z = sc.cast_rays(O3.core.Tensor(rays))["t_hit"].numpy()

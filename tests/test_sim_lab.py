@@ -15,6 +15,7 @@ from tdof20.capture.rig import build_rig
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, read_scene, read_session
 from tdof20.geometry import invert, look_at, rotation_angle
+from tdof20.objects import get_object
 from tdof20.sim.lab import CLUTTER, TableMotion, hand_eye_offset, true_hand_eye
 from tdof20.sim.render import SimRenderer
 from tdof20.sim.rig import DEFAULT_T_TCP_CAM, RigLayout, oakd_camera
@@ -240,6 +241,8 @@ hand_eye_error_mm = 2.0
 hand_eye_error_deg = 0.5
 step_jitter_deg = 0.05
 depth_bias = 1.02
+twin_offset_mm = 2.0
+twin_offset_deg = 1.0
 """
 
 
@@ -251,6 +254,15 @@ def test_lab_options_from_a_toml_config(tmp_path):
     assert not cfg.sim.record_direction and cfg.sim.hand_eye_error_mm == 2.0 and cfg.sim.step_jitter_deg == 0.05
     rig = build_rig(cfg)
     assert cfg.sim.depth_bias == 1.02 and rig.world.renderer.sensor.depth_bias == 1.02
+    # each opaque twin 2 mm along the table top and 1 deg about its vertical axis off its object
+    for p, T in zip(rig.world.renderer.scene.placements, rig.world.renderer.T_table_twins):
+        D = T @ np.linalg.inv(p.T_table_obj)
+        assert np.degrees(np.arccos(np.clip(D[0, 0], -1, 1))) == pytest.approx(1.0)
+        assert np.allclose(D[2, :3], [0, 0, 1]) and abs(D[2, 3]) < 1e-9   # a move along the top, a turn about z
+        V = get_object(p.obj_id).vertices
+        c = 0.5 * (V.min(0) + V.max(0))   # the object's centre moves by exactly 2 mm
+        assert np.linalg.norm((T[:3, :3] @ c + T[:3, 3]) - (p.T_table_obj[:3, :3] @ c + p.T_table_obj[:3, 3])) == \
+            pytest.approx(2.0)
     assert rig.world.table == TableMotion("cw", 0.05, 0) and rig.world.renderer.clutter == ("cabinet", "wall")
     assert np.array_equal(hand_eye(cfg), DEFAULT_T_TCP_CAM)
 
@@ -263,6 +275,8 @@ def test_lab_options_from_a_toml_config(tmp_path):
     (("hand_eye_error_deg = 0.5", "hand_eye_error_deg = -1.0"), "sim.hand_eye_error_deg: must be in [0, 10]"),
     (("hand_eye_error_mm = 2.0", "hand_eye_error_mm = 0.2e3"), "sim.hand_eye_error_mm: must be in [0, 50]"),
     (("depth_bias = 1.02", "depth_bias = 102"), "sim.depth_bias: must be in [0.9, 1.1] (reported / true depth"),
+    (("twin_offset_mm = 2.0", "twin_offset_mm = 2e3"), "sim.twin_offset_mm: must be in [0, 20] mm"),
+    (("twin_offset_deg = 1.0", "twin_offset_deg = -1"), "sim.twin_offset_deg: must be in [0, 20] degrees"),
 ])
 def test_lab_config_mistakes_are_one_line(tmp_path, edit, needle):
     p = tmp_path / "lab.toml"
@@ -277,7 +291,7 @@ def test_capture_run_cli_lab_options(tmp_path):
            "--arm-positions", "1", "--width", "80", "--height", "60", "--yes", "--out"]
     res = subprocess.run(exe + [str(tmp_path / "s"), "--clutter", "cabinet,wall", "--direction", "cw",
                                 "--hand-eye-error", "2,0.5", "--step-jitter", "0.05", "--no-record-direction",
-                                "--depth-bias", "1.02"],
+                                "--depth-bias", "1.02", "--twin-offset", "2,1"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     d = json.loads((tmp_path / "s" / "session.json").read_text())
@@ -286,6 +300,7 @@ def test_capture_run_cli_lab_options(tmp_path):
                                "step_jitter_deg": 0.05}
     rig = read_json(tmp_path / "s" / "truth" / "rig.json")
     assert rig["depth_bias"] == 1.02  # in the truth only: session.json does not tell annotation
+    assert rig["twin_offset_mm"] == 2.0 and rig["twin_offset_deg"] == 1.0 and len(rig["T_table_twin"]) >= 1
     assert rig["direction"] == "cw" and rig["table_angle_deg"]["transparent"][0][1] < -29.9
     res = subprocess.run(exe + [str(tmp_path / "t"), "--clutter", "cabinet,sofa"], capture_output=True, text=True,
                          timeout=300)

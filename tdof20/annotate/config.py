@@ -24,7 +24,7 @@ from tdof20.annotate.models import ModelFitConfig
 from tdof20.annotate.modelbuild_config import ModelBuildConfig
 from tdof20.annotate.reconstruct import ReconstructionConfig
 from tdof20.annotate.registration_config import RegistrationConfig
-from tdof20.config import config_from_data, load_config_file
+from tdof20.config import check_ranges, config_from_data, load_config_file
 from tdof20.errors import TdofError
 
 __all__ = ["AnnotateConfig", "PlaceConfig", "QAConfig", "annotate_config_from_dict", "jsonable",
@@ -45,6 +45,24 @@ class PlaceConfig:
     upright_max_deg: float = 3.0         # ... when the fit's tilt is below this (else kept as fitted)
     min_fitness: float = 0.15            # quality gate of the final fit (fraction of cluster points
     max_score_mm: float = 3.0            # within the last ICP distance; truncated mean distance)
+    # the twin check (tdof20.annotate.twins): the transparent phase's glass returns against the twin's pose
+    twin_check: bool = True
+    twin_frames: int = 96                # transparent frames read (spread over arms and steps)
+    twin_groups: int = 12                # interleaved groups of them the 95 % bound comes from
+    twin_rounds: int = 3                 # fits, each choosing the returns at the last one's pose
+    twin_margin_mm: float = 15.0         # returns within the object's footprint + this ...
+    twin_min_height_mm: float = 6.0      # ... and this far above the table top are its evidence
+    twin_scale_mm: float = 4.0           # Cauchy scale of the fit (glass returns are noisy)
+    twin_trunc_mm: float = 15.0          # returns farther from the model are not its evidence
+    twin_min_points: int = 200           # fewer returns: not checked (flagged)
+    twin_max_ci95_mm: float = 0.6        # strong evidence: bounds at most these ...
+    twin_max_ci95_deg: float = 0.6
+    twin_max_mm: float = 5.0             # ... and an offset within these: the pose corrected
+    twin_max_deg: float = 5.0
+    twin_within_mm: float = 1.0          # weak evidence bounding the offset within these: kept
+    twin_within_deg: float = 1.0
+    twin_min_ci95_mm: float = 0.05       # floors of the bounds
+    twin_min_ci95_deg: float = 0.05
 
     def __post_init__(self) -> None:
         if self.match_samples < 100 or self.fit_samples < 100:
@@ -53,6 +71,11 @@ class PlaceConfig:
             raise TdofError(f"place.match_candidates must be >= 1, got {self.match_candidates}")
         if not self.match_icp_mm or any(d <= 0 for d in self.match_icp_mm) or self.match_voxel_mm <= 0:
             raise TdofError("place.match_icp_mm and place.match_voxel_mm must be > 0")
+        check_ranges(self, "place", positive=("twin_frames", "twin_groups", "twin_rounds", "twin_scale_mm", "twin_trunc_mm",
+                                              "twin_min_points", "twin_max_ci95_mm", "twin_max_ci95_deg",
+                                              "twin_max_mm", "twin_max_deg", "twin_within_mm", "twin_within_deg",
+                                              "twin_min_ci95_mm", "twin_min_ci95_deg"),
+                     non_negative=("twin_margin_mm", "twin_min_height_mm"))
 
 
 @dataclass(frozen=True)

@@ -148,6 +148,8 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
     unresolved = [{"arm": sk["arm"], "step": sk["step"], "im_id": sk.get("im_id"), "reason": sk["reason"]}
                   for sk in (s.get("label") or {}).get("skipped") or [] if not sk["reason"].startswith(REJECTED)]
     unresolved += [{"obj_id": f["obj_id"], "reason": f["reason"]} for f in s.get("failed_objects") or []]
+    # an object whose glass stands off its twin for certain, uncorrected (the twin check)
+    unresolved += [{"obj_id": p["obj_id"], "reason": p["flag"]} for p in s.get("objects") or [] if p.get("flag")]
     s["unresolved_flags"] = unresolved
     try:
         corr = ctx.corrections()
@@ -304,7 +306,8 @@ def summary_text(summary: dict) -> str:
     for p in summary.get("objects") or []:
         fit = (f"fitness {p['fitness']:.2f}, mean distance {p['score_mm']:.2f} mm" if p.get("fitness") is not None
                else "model built from the reconstruction")
-        lines.append(f"  object {p['obj_id']}: {fit}")
+        tw = p.get("twin")
+        lines.append(f"  object {p['obj_id']}: {fit}" + (f"; twin {tw['action']}: {tw['note']}" if tw else ""))
     for p in summary.get("failed_objects") or []:
         lines.append(f"  object {p['obj_id']}: FAILED, not labelled: {p['reason']}")
     if summary.get("partial"):

@@ -256,12 +256,13 @@ class _Points:
 def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = (), sample: int = 12,
              out_dir: str | Path | None = None, progress: bool = True, evaluation: dict | None = None,
              n_points: int = 600, session_dir: str | Path | None = None,
-             failed_objects: Iterable[dict] = ()) -> Path:
+             failed_objects: Iterable[dict] = (), twins: Iterable[dict] = ()) -> Path:
     """Write the QA outputs of an annotated scene (see the module docstring); returns the path of
     ``report.html``. ``registration``: a RegistrationResult or the path of its JSON (its flagged
     frames join ``flagged``); ``flagged``: [(arm, step, reason) | (im_id, reason) | im_id];
     ``evaluation``: the dict of :func:`tdof20.annotate.evaluate.evaluate_scene`; ``session_dir``:
-    where to find colour images of frames the scene lacks (default: scene_info's source_session)."""
+    where to find colour images of frames the scene lacks (default: scene_info's source_session);
+    ``twins``: the place stage's twin check per object ({obj_id, action, note, offset_mm, ...})."""
     scene = _open_scene(scene_dir)
     out = Path(out_dir) if out_dir is not None else scene.path / "qa"
     info = read_json(scene.path / "scene_info.json") if (scene.path / "scene_info.json").exists() else {}
@@ -369,6 +370,8 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
         "problems": problems,
         # objects the place stage's quality gate refused (a partial scene): {obj_id, cluster, reason}
         "failed_objects": [dict(f) for f in failed_objects],
+        # the twin check: where each transparent object stands against its opaque twin
+        "twins": [dict(t) for t in twins],
     }
     write_json(out / "qa.json", summary)
     report = out / "report.html"
@@ -444,6 +447,14 @@ def _html(s: dict, reg, evaluation: dict | None) -> str:
         p.append("<h2>Objects not labelled (partial scene)</h2>")
         p.append(_table(["obj_id", "reason"], [[_n(f["obj_id"]), _e(f["reason"])] for f in s["failed_objects"]],
                         left=[1], bad=range(len(s["failed_objects"]))))
+    if s.get("twins"):
+        p.append("<h2>Twin placement</h2><p>where each transparent object stands against its opaque twin, "
+                 "from the transparent phase's glass returns (docs/annotate.md)</p>")
+        tw = s["twins"]
+        p.append(_table(["obj_id", "action", "offset (mm)", "± 95 %", "turn (deg)", "± 95 %", "returns", "note"],
+                        [[_n(t["obj_id"]), _e(t["action"]), _n(t.get("offset_mm")), _n(t.get("ci95_mm")),
+                          _n(t.get("turn_deg")), _n(t.get("ci95_deg")), _n(t.get("points")), _e(t["note"])]
+                         for t in tw], left=[1, 7], bad=[i for i, t in enumerate(tw) if t["action"] == "flagged"]))
     p.append("<h2>Flagged frames</h2>")
     if s["flagged"]:
         files = {o["im_id"]: o["file"] for o in s["overlays"]}

@@ -49,6 +49,7 @@ from tdof20.annotate.qa import write_qa
 from tdof20.annotate.reconstruct import reconstruct
 from tdof20.annotate.registration import RegistrationResult, register_session
 from tdof20.annotate.state import WORK, count_files, dir_hash, sha_file, sha_obj
+from tdof20.annotate.twins import check_twins, twin_decision
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
 from tdof20.progress import progress as _progress
@@ -417,6 +418,8 @@ def _place(ctx: StageContext) -> dict:
         for p in sorted(ctx.built_dir.iterdir()):
             if p.is_file():
                 copy_file(p, dst / p.name)
+    if ctx.cfg.place.twin_check and placements:
+        _check_twins(ctx, placements, dst, np.asarray(meta["plane"], float))
     if corr.placed:   # the reviewer's poses replace the fits (the label gate still judges every frame)
         samples = model_samples(load_meshes(dst, sorted({int(e["obj_id"]) for e in fits["objects"]})),
                                 ctx.cfg.place.fit_samples)
@@ -428,6 +431,31 @@ def _place(ctx: StageContext) -> dict:
     write_json(ctx.placements_file, {"format": "tdof20-placements", "plane": meta["plane"],
                                      "placements": placements, "failed": failed})
     return {"objects": len(placements), **({"failed_objects": len(failed)} if failed else {})}
+
+
+def _check_twins(ctx: StageContext, placements: list[dict], models_dir: Path, plane: np.ndarray) -> None:
+    """The twin check (:mod:`tdof20.annotate.twins`) of every placement, in place: ``twin`` (the
+    estimate, its action and line), the pose moved onto the glass where the evidence is strong
+    (``T_ref_twin`` keeps the twin's), ``flag`` where a person has to look."""
+    from tdof20.formats.bop_models import read_models_info
+
+    reg = RegistrationResult.load(ctx.reg_file)
+    session = reg.corrected(ctx.session)   # true millimetres
+    obj_ids = sorted({int(p["obj_id"]) for p in placements})
+    meshes = load_meshes(models_dir, obj_ids)
+    info = read_models_info(models_dir)
+    symmetric = {o: bool((info.get(o) or {}).get("symmetries_continuous")) for o in obj_ids}
+    frames = [f for f in reg.frames if reg.usable(f.arm, f.step)]
+    found = check_twins(session, frames, placements, meshes, plane, symmetric, ctx.cfg.place)
+    for p in placements:
+        est = found[int(p["gt_id"])]
+        action, line, D = twin_decision(est, ctx.cfg.place)
+        p["twin"] = {**(est.to_dict() if not isinstance(est, str) else {}), "action": action, "note": line}
+        if D is not None:
+            p["T_ref_twin"] = p["T_ref_model"]
+            p["T_ref_model"] = T_list(D @ T_arr(p["T_ref_model"]))
+        if action == "flagged":
+            p["flag"] = f"object {p['obj_id']}: {line}"
 
 
 def _place_inputs(ctx: StageContext) -> dict:
@@ -512,9 +540,10 @@ def _qa(ctx: StageContext) -> dict:
         write_json(ctx.eval_file, evaluation)
     else:
         ctx.eval_file.unlink(missing_ok=True)
+    pl = read_json(ctx.placements_file) if ctx.placements_file.exists() else {}
     kw = dict(registration=reg, sample=ctx.cfg.qa.sample, evaluation=evaluation, progress=ctx.progress,
-              session_dir=ctx.raw,
-              failed_objects=read_json(ctx.placements_file).get("failed", []) if ctx.placements_file.exists() else [])
+              session_dir=ctx.raw, failed_objects=pl.get("failed", []),
+              twins=[{"obj_id": p["obj_id"], **p["twin"]} for p in pl.get("placements", []) if p.get("twin")])
     try:
         report = write_qa(ctx.out, flagged=flagged, **kw)
     except TdofError:

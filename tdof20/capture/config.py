@@ -106,6 +106,8 @@ class SimConfig:
     hand_eye_error_deg: float = 0.0       # ... and turned by this much (direction seeded by sim.seed)
     step_jitter_deg: float = 0.0          # the table stands at nominal + U[-jitter, jitter] per frame
     depth_bias: float = 1.0               # the camera's depth reads this multiple of the true depth (1.02: 2 % long)
+    twin_offset_mm: float = 0.0           # each opaque twin stands this far off its object's slot (direction seeded)
+    twin_offset_deg: float = 0.0          # ... and turned by this much about the table axis (sign seeded)
 
 
 @dataclass(frozen=True)
@@ -243,6 +245,10 @@ def validate(cfg: CaptureConfig) -> CaptureConfig:
     if not 0.9 <= sm.depth_bias <= 1.1:
         _fail(src, "sim.depth_bias", f"must be in [0.9, 1.1] (reported / true depth; 1.02 reads 2 % long), "
                                      f"got {sm.depth_bias}")
+    if not 0 <= sm.twin_offset_mm <= 20:
+        _fail(src, "sim.twin_offset_mm", f"must be in [0, 20] mm, got {sm.twin_offset_mm}")
+    if not 0 <= sm.twin_offset_deg <= 20:
+        _fail(src, "sim.twin_offset_deg", f"must be in [0, 20] degrees, got {sm.twin_offset_deg}")
     return cfg
 
 
@@ -250,9 +256,9 @@ def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0
                width: int = 640, height: int = 480, seed: int = 0, phases=PHASES, clutter=(),
                direction: str = "ccw", record_direction: bool = True, hand_eye_error_mm: float = 0.0,
                hand_eye_error_deg: float = 0.0, step_jitter_deg: float = 0.0,
-               depth_bias: float = 1.0) -> CaptureConfig:
+               depth_bias: float = 1.0, twin_offset_mm: float = 0.0, twin_offset_deg: float = 0.0) -> CaptureConfig:
     """The config of a capture on the simulated rig (what ``capture run --sim`` builds); the
-    lab options (clutter ... depth_bias) are those of :class:`SimConfig` and
+    lab options (clutter ... twin_offset_deg) are those of :class:`SimConfig` and
     ``TurntableConfig.direction``."""
     cfg = CaptureConfig(session=SessionConfig(scene_id=scene_id, phases=tuple(phases)),
                         turntable=TurntableConfig(step_deg=step_deg, steps=steps, direction=direction),
@@ -261,5 +267,6 @@ def sim_config(scene_id: str = "multi/08", steps: int = 400, step_deg: float = 0
                                       record_direction=record_direction,
                                       hand_eye_error_mm=float(hand_eye_error_mm),
                                       hand_eye_error_deg=float(hand_eye_error_deg),
-                                      step_jitter_deg=float(step_jitter_deg), depth_bias=float(depth_bias)))
+                                      step_jitter_deg=float(step_jitter_deg), depth_bias=float(depth_bias),
+                                      twin_offset_mm=float(twin_offset_mm), twin_offset_deg=float(twin_offset_deg)))
     return validate(cfg)

@@ -30,13 +30,16 @@ def lab_record(cfg: CaptureConfig, session: bool = True) -> dict:
     """What session.json records of the simulated lab (under ``sim.lab``): the clutter and the
     sizes of the errors, not the errors themselves (those are in truth/rig.json); {} for a clean
     rig. The direction is not here: it is ``turntable.direction``, or left out. The depth bias
-    is its own size, so session.json leaves it out (annotation must find it as on a real rig);
+    and the twins' offsets are their own sizes, so session.json leaves them out (annotation must
+    find them as on a real rig);
     ``session=False`` gives it too (what ``capture plan`` shows)."""
     s = cfg.sim
     lab = {"clutter": list(s.clutter), "hand_eye_error_mm": s.hand_eye_error_mm,
            "hand_eye_error_deg": s.hand_eye_error_deg, "step_jitter_deg": s.step_jitter_deg}
-    if not session and s.depth_bias != 1.0:
-        lab["depth_bias"] = s.depth_bias
+    if not session:
+        if s.depth_bias != 1.0:
+            lab["depth_bias"] = s.depth_bias
+        lab["twin_offset_mm"], lab["twin_offset_deg"] = s.twin_offset_mm, s.twin_offset_deg
     return {k: v for k, v in lab.items() if v}
 
 

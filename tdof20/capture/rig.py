@@ -12,7 +12,7 @@ from tdof20.capture.config import CaptureConfig
 from tdof20.capture.hardware.interfaces import RGBDCamera, Robot, Turntable
 from tdof20.capture.hardware.registry import DEVICES, vendor
 from tdof20.capture.plan import arm_targets, hand_eye
-from tdof20.sim.lab import TableMotion, true_hand_eye
+from tdof20.sim.lab import TableMotion, true_hand_eye, twin_offsets
 from tdof20.sim.rig import RigLayout, oakd_camera, ur5_fk
 from tdof20.sim.scenes import get_scene
 
@@ -43,6 +43,7 @@ def build_rig(cfg: CaptureConfig, faults: dict | None = None) -> Rig:
 def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     # the renderer imports open3d (tdof20.o3d) at the top: only a simulated rig needs it
     from tdof20.capture.hardware.sim import SimCamera, SimRobot, SimTurntable, SimWorld
+    from tdof20.objects import get_object
     from tdof20.sim.render import SimRenderer
     from tdof20.sim.sensor import SensorModel
 
@@ -52,9 +53,15 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
     layout = RigLayout(T_tcp_cam=T_tcp_cam)
     targets = arm_targets(cfg)
     camera = oakd_camera(cfg.camera.width, cfg.camera.height)
-    renderer = SimRenderer(get_scene(cfg.session.scene_id, layout.table_radius), camera, layout,
+    scene = get_scene(cfg.session.scene_id, layout.table_radius)
+    # the opaque twins off their slots (sim.twin_offset_mm/_deg): about each object's centre
+    centres = [0.5 * (get_object(p.obj_id).vertices.min(0) + get_object(p.obj_id).vertices.max(0))
+               for p in scene.placements]
+    offsets = twin_offsets([p.T_table_obj for p in scene.placements], centres, s.twin_offset_mm, s.twin_offset_deg,
+                           s.seed)
+    renderer = SimRenderer(scene, camera, layout,
                            [ur5_fk(q) @ T_tcp_cam_true for q in targets], sensor=SensorModel(depth_bias=s.depth_bias),
-                           seed=s.seed, clutter=s.clutter)
+                           seed=s.seed, clutter=s.clutter, twin_offsets=offsets)
     table = TableMotion(cfg.turntable.direction, s.step_jitter_deg, s.seed)
     world = SimWorld(renderer, targets, faults, table)
 
@@ -67,7 +74,9 @@ def _sim_rig(cfg: CaptureConfig, faults: dict | None) -> Rig:
         write_truth(renderer, out, cfg.turntable.steps, cfg.turntable.step_deg, show_progress, table=table,
                     rig={"T_tcp_cam": T_tcp_cam_true, "T_tcp_cam_recorded": T_tcp_cam, "clutter": list(s.clutter),
                          "hand_eye_error_mm": s.hand_eye_error_mm, "hand_eye_error_deg": s.hand_eye_error_deg,
-                         "depth_bias": s.depth_bias},
+                         "depth_bias": s.depth_bias, "twin_offset_mm": s.twin_offset_mm,
+                         "twin_offset_deg": s.twin_offset_deg,
+                         "T_table_twin": [T.reshape(16).tolist() for T in renderer.T_table_twins]},
                     phases=tuple(cfg.session.phases))
 
     return Rig(SimRobot(world), SimTurntable(world), SimCamera(world), set_phase, after_capture, world)

@@ -90,6 +90,28 @@ def true_hand_eye(T_tcp_cam: np.ndarray, error_mm: float, error_deg: float, seed
     return T @ hand_eye_offset(error_mm, error_deg, seed)
 
 
+def twin_offsets(T_table_objs: list[np.ndarray], centres: list[np.ndarray], error_mm: float, error_deg: float,
+                 seed: int = 0) -> list[np.ndarray] | None:
+    """Where each opaque twin really stands: a table-frame offset D per object (T_table_twin =
+    D @ T_table_obj), a move of ``error_mm`` along the table top in a seeded direction and a turn
+    of ``error_deg`` (seeded sign) about the vertical axis through the object's centre (model
+    frame ``centres``); None for twins exactly in their slots."""
+    if error_mm == 0 and error_deg == 0:
+        return None
+    rng = np.random.default_rng([int(seed), 77])
+    out = []
+    for T, c in zip(T_table_objs, centres):
+        phi = rng.uniform(0, 2 * np.pi)
+        turn = np.radians(error_deg) * rng.choice([-1.0, 1.0])
+        p = np.asarray(T, float)[:3, :3] @ np.asarray(c, float) + np.asarray(T, float)[:3, 3]
+        ct, st = np.cos(turn), np.sin(turn)
+        D = np.eye(4)
+        D[:2, :2] = [[ct, -st], [st, ct]]
+        D[:3, 3] = p - D[:3, :3] @ p + [error_mm * np.cos(phi), error_mm * np.sin(phi), 0.0]
+        out.append(D)
+    return out
+
+
 # ------------------------------------------------------------------------------------ clutter
 # A clutter part: a box in the preset's local frame, whose origin is the point on the bench top
 # ``gap_mm`` beyond the disk's edge at ``azimuth_deg`` (about the table axis, counter-clockwise

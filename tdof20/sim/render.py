@@ -88,7 +88,7 @@ class SimRenderer:
     def __init__(self, scene: SceneSpec, camera: PinholeCamera, layout: RigLayout,
                  T_base_cams: list[np.ndarray], sensor: SensorModel | None = None,
                  glass: GlassModel | None = None, seed: int = 0, threads: bool = True,
-                 clutter: tuple[str, ...] = ()):
+                 clutter: tuple[str, ...] = (), twin_offsets: list[np.ndarray] | None = None):
         self.scene = scene
         self.clutter = tuple(clutter)
         self.camera = camera
@@ -100,6 +100,10 @@ class SimRenderer:
         self.objects = [get_object(p.obj_id) for p in scene.placements]
         self._rays_cam = camera.pixel_rays().reshape(-1, 3).astype(np.float32)
         self._dirs_cam = self._rays_cam / np.linalg.norm(self._rays_cam, axis=1, keepdims=True)
+        # the opaque twins' poses in the table frame: the transparent objects' own, or each moved by
+        # its offset (T_table_twin = offset @ T_table_obj: a twin standing off its object's slot)
+        self.T_table_twins = [p.T_table_obj if twin_offsets is None else np.asarray(D, float) @ p.T_table_obj
+                              for p, D in zip(scene.placements, twin_offsets or [None] * len(scene.placements))]
         self._build_world()
         self._build_objects()
         self.sticker, self.sticker_mm_px = make_sticker(scene.sticker, scene.sticker_seed, layout.table_radius, 768)
@@ -142,20 +146,26 @@ class SimRenderer:
         self._world = scene
 
     def _build_objects(self) -> None:
-        self._objects = o3d.t.geometry.RaycastingScene()
-        self._obj_faces, self._obj_vnormals = [], []
-        for p, obj in zip(self.scene.placements, self.objects):
-            v_table = transform_points(p.T_table_obj, obj.vertices).astype(np.float32)
-            faces = np.asarray(obj.faces, np.int32)
-            self._objects.add_triangles(o3d.core.Tensor(v_table), o3d.core.Tensor(faces.astype(np.uint32)))
-            vn = trimesh.Trimesh(obj.vertices, obj.faces, process=False).vertex_normals
-            self._obj_faces.append(faces)
-            self._obj_vnormals.append((vn @ p.T_table_obj[:3, :3].T).astype(np.float32))
-        # the three vertex normals of every face, all objects concatenated: (F, 9), table frame
-        self._face_vn = np.concatenate([vn[f].reshape(-1, 9) for f, vn in zip(self._obj_faces, self._obj_vnormals)])
+        self._obj_faces = [np.asarray(obj.faces, np.int32) for obj in self.objects]
         self._face_offset = np.concatenate([[0], np.cumsum([len(f) for f in self._obj_faces])[:-1]]).astype(np.int64)
+        vns = [trimesh.Trimesh(o.vertices, o.faces, process=False).vertex_normals for o in self.objects]
+        self._phase_objects = {"transparent": self._object_scene([p.T_table_obj for p in self.scene.placements], vns)}
+        twins_moved = any(not np.array_equal(T, p.T_table_obj) for T, p in zip(self.T_table_twins, self.scene.placements))
+        self._phase_objects["opaque"] = (self._object_scene(self.T_table_twins, vns) if twins_moved
+                                         else self._phase_objects["transparent"])
         self._hulls = [convex_hull_points(o.vertices, o.faces) for o in self.objects]
         self._models = ModelRaycaster({o.obj_id: (o.vertices, o.faces) for o in self.objects}, self.camera)
+
+    def _object_scene(self, T_table_objs: list[np.ndarray], vns: list[np.ndarray]) -> tuple:
+        """(ray-casting scene, (F, 9) vertex normals of every face, table frame) of the objects at
+        the given table-frame poses."""
+        scene = o3d.t.geometry.RaycastingScene()
+        for T, obj, faces in zip(T_table_objs, self.objects, self._obj_faces):
+            v_table = transform_points(T, obj.vertices).astype(np.float32)
+            scene.add_triangles(o3d.core.Tensor(v_table), o3d.core.Tensor(faces.astype(np.uint32)))
+        face_vn = np.concatenate([(vn @ T[:3, :3].T).astype(np.float32)[f].reshape(-1, 9)
+                                  for T, f, vn in zip(T_table_objs, self._obj_faces, vns)])
+        return scene, face_vn
 
 
     # ------------------------------------------------------------------ helpers
@@ -242,9 +252,12 @@ class SimRenderer:
         self._bg_cache[arm] = bg
         return bg
 
-    def poses(self, arm: int, angle_deg: float) -> list[np.ndarray]:
-        """T_cam_obj (4,4) of every placement at arm position ``arm`` and table angle ``angle_deg``."""
+    def poses(self, arm: int, angle_deg: float, phase: str = "transparent") -> list[np.ndarray]:
+        """T_cam_obj (4,4) of every placement at arm position ``arm`` and table angle ``angle_deg``
+        (``phase`` opaque: the twins', which may stand off their objects' slots)."""
         T_cam_table = invert(self.T_base_cams[arm]) @ self.layout.T_base_table(angle_deg)
+        if phase == "opaque":
+            return [T_cam_table @ T for T in self.T_table_twins]
         return [T_cam_table @ p.T_table_obj for p in self.scene.placements]
 
     def _roi(self, poses: list[np.ndarray]) -> tuple[np.ndarray, tuple]:
@@ -259,16 +272,18 @@ class SimRenderer:
         same frames."""
         return np.random.default_rng([self.seed, PHASES.index(phase), arm, int(round(angle_deg * 1000)) % 360000])
 
-    def _geometry(self, arm: int, angle_deg: float) -> dict:
+    def _geometry(self, arm: int, angle_deg: float, phase: str = "transparent") -> dict:
         """The exact geometry of a view: object poses, which object each pixel sees (label) and
-        its depth, from one cast of the pixels that can meet an object."""
+        its depth, from one cast of the pixels that can meet an object (``phase`` opaque: the
+        twins')."""
         h, w = self.camera.height, self.camera.width
         bg = self._background(arm)
-        poses = self.poses(arm, angle_deg)
+        poses = self.poses(arm, angle_deg, phase)
+        objects, face_vn = self._phase_objects[phase]
         T_table_cam = invert(self.layout.T_base_table(angle_deg)) @ self.T_base_cams[arm]
         roi2d, box = self._roi(poses)
         idx = np.flatnonzero(roi2d)
-        hit = self._cast(self._objects, T_table_cam[:3, 3],
+        hit = self._cast(objects, T_table_cam[:3, 3],
                          self._rays_cam[idx] @ T_table_cam[:3, :3].T.astype(np.float32))
         z_obj_roi = hit["t_hit"].astype(np.float32)
         z_bg = bg["z"].reshape(-1)
@@ -278,7 +293,7 @@ class SimRenderer:
         label[vi] = hit["geometry_ids"][vis_roi].astype(np.int16)
         z_obj = np.full(h * w, np.inf, np.float32)
         z_obj[vi] = z_obj_roi[vis_roi]
-        return {"bg": bg, "poses": poses, "T_table_cam": T_table_cam, "roi": roi2d, "box": box, "vi": vi,
+        return {"bg": bg, "poses": poses, "face_vn": face_vn, "T_table_cam": T_table_cam, "roi": roi2d, "box": box, "vi": vi,
                 "gid": hit["geometry_ids"][vis_roi], "prim": hit["primitive_ids"][vis_roi],
                 "uv": hit["primitive_uvs"][vis_roi], "label": label, "z_obj": z_obj}
 
@@ -298,8 +313,10 @@ class SimRenderer:
         cam = self.camera
         h, w = cam.height, cam.width
         rng = self.frame_rng(phase, arm, angle_deg)
-        geo = self._geometry(arm, angle_deg)
-        poses, label = geo["poses"], geo["label"]
+        geo = self._geometry(arm, angle_deg, phase)
+        label = geo["label"]
+        # the frame's truth is the transparent objects' (an opaque twin off its slot is not the label)
+        poses = geo["poses"] if phase == "transparent" else self.poses(arm, angle_deg)
         oy, ox = rng.integers(0, self._pad, 2)  # drawn first: the two halves below use rng in a fixed order
         # depth and colour are independent given the geometry: the depth half runs in a second
         # thread (numpy and OpenCV release the GIL), so both cores work on one frame
@@ -322,7 +339,7 @@ class SimRenderer:
         colour = self._draw_sticker(bg["colour"].copy(), bg["sticker_maps"], angle_deg).reshape(-1, 3)
         if len(vi):
             gid = geo["gid"]
-            n_table = self._interp_normals(gid, geo["prim"], geo["uv"])
+            n_table = self._interp_normals(geo["face_vn"], gid, geo["prim"], geo["uv"])
             n_cam = (n_table @ R_cam_table.T.astype(np.float32))
             d_cam = self._dirs_cam[vi]
             n_cam *= np.where(np.einsum("ij,ij->i", n_cam, d_cam) > 0, -1.0, 1.0).astype(np.float32)[:, None]
@@ -358,9 +375,9 @@ class SimRenderer:
             z_sensor = z_sensor * np.float32(self.sensor.depth_bias)
         return cam.mm_to_depth(z_sensor), z_true
 
-    def _interp_normals(self, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def _interp_normals(self, face_vn: np.ndarray, gid: np.ndarray, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Smooth (barycentric) vertex normals at ray hits, table frame, (N,3) unit."""
-        g = np.take(self._face_vn, self._face_offset[gid] + prim, axis=0)  # one gather of 9 floats a hit
+        g = np.take(face_vn, self._face_offset[gid] + prim, axis=0)  # one gather of 9 floats a hit
         w = np.empty((len(uv), 3), np.float32)
         w[:, 1:] = uv
         w[:, 0] = 1.0 - uv[:, 0] - uv[:, 1]
