@@ -3,7 +3,7 @@ Playwright), on the rich dataset (1,800 hard test targets, so figures are shown)
 queue position and ETA, the leaderboard's phases (validation, test on the public part, the final
 one on the held-back part: shut until the operator reveals it), the method's paper and code links,
 the per-condition table, the CSV and JSON exports, and the version each score is on (an older one
-said, then scored again). With TDOF20_SCREENSHOTS=DIR set, DIR/server_queue.png,
+said, then scored again); ``tdof20 submit`` prints the queue position. With TDOF20_SCREENSHOTS=DIR set, DIR/server_queue.png,
 DIR/server_phases.png (the test phase), DIR/server_final.png (the revealed final leaderboard) and
 DIR/server_conditions.png (a results page's per-condition table) are saved (docs/img/ holds them)."""
 
@@ -99,7 +99,12 @@ def test_queue_phases_conditions_exports_and_versions(tmp_path):
                 assert table.locator("td.miss").count() == 0
                 assert page.locator(".plots img").count() == 1  # the shown values' bars
                 shot(page, "server_conditions.png")
-                uid2 = submit(files["third"], live.url, live.tokens["alice"], "Third", "hard")["uid"]
+                r = run(app, ["submit", str(files["third"]), "--server", live.url, "--token", live.tokens["alice"],
+                              "--method", "Third", "--split", "hard"])  # the command says where it stands
+                assert r.exit_code == 0, r.output
+                lines = r.output.strip().splitlines()
+                uid2 = lines[0].split()[1].rstrip(":")
+                assert lines[1].startswith("position 1 in the queue (0 ahead, 1 worker(s)); expected in about "), lines
                 page.goto(f"{live.url}/s/{uid2}")
                 expect(page.locator("#queue")).to_contain_text("expected result")
                 expect(page.locator("#queue")).to_contain_text("(median of the last 2)")

@@ -194,6 +194,7 @@ def test_method_links_and_the_exported_leaderboard(server, dataset):
                          hardware="RTX 4090", training_data="hard train").status_code == 201
     assert run_worker(server.cfg, once=True) == 1
     html = server.client.get("/", params={"split": "hard"}).text
+    assert "hidden test labels,\nranked" in html  # (no held-back part: no aside, no stray parenthesis)
     assert 'href="https://arxiv.org/abs/2401.00001"' in html and 'href="https://github.com/a/b"' in html
     board = server.client.get("/api/leaderboard", params={"split": "hard"}).json()
     assert board[0]["paper"] == "https://arxiv.org/abs/2401.00001" and board[0]["version"]["current"] is True

@@ -208,9 +208,12 @@ def scorer_sources() -> list[Path]:
             + [Path(tdof20.dataset.results.__file__), Path(__file__)])
 
 
+@lru_cache(maxsize=1)
 def scorer_version() -> str:
     """tdof20's version and a digest of :func:`scorer_sources`: any change to the scorer (a fix, a
-    new rounding, a new condition bin) gives a new version."""
+    new rounding, a new condition bin) gives a new version. Computed once per process (a worker
+    calls it as it starts), so it names the code the process imported, not what an upgrade has
+    since put on disk: restart the server and its workers together after upgrading."""
     return f"{tdof20.__version__}+{_digest(scorer_sources())[:8]}"
 
 

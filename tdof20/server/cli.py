@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 
 from tdof20.errors import TdofError
-from tdof20.server.client import submit
+from tdof20.server.client import queue_line, submit
 from tdof20.server.config import DAILY_LIMIT, LEASE_S, MAX_UPLOAD_BYTES, MAX_UPLOADS, ServerConfig
 from tdof20.server.publish import publish
 
@@ -219,6 +219,8 @@ def submit_command(results: Path = typer.Argument(..., help="a BOP results CSV")
     out = submit(results, server, token, method, split, description, authors, hardware, time_per_image,
                  training_data, public, part, paper, code)
     typer.echo(f"submitted {out['uid']}: {out['status']} ({server.rstrip('/')}/s/{out['uid']})")
+    if out.get("queue"):
+        typer.echo(queue_line(out["queue"]))
     for w in out.get("warnings", []):
         typer.echo(f"warning: {w}")
 

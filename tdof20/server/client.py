@@ -57,6 +57,20 @@ def refusal_line(e: urllib.error.HTTPError) -> str:
     return (" ".join(first.split())[:200] if first and not first.startswith("<") else "") or str(e.reason)
 
 
+def queue_line(q: dict | None) -> str:
+    """A submission's place in the queue as one line ('' when it is not queued)."""
+    if not q:
+        return ""
+    eta = q.get("eta_s")
+    when = "no estimate yet" if eta is None else f"expected in about {_dur(eta)}"
+    where = f"position {q['position']} in the queue" if q.get("position") else "being scored"
+    return f"{where} ({q.get('ahead', 0)} ahead, {q.get('workers', 1)} worker(s)); {when}"
+
+
+def _dur(x: float) -> str:
+    return f"{round(x)} s" if x < 90 else f"{round(x / 60)} min" if x < 5400 else f"{x / 3600:.1f} h"
+
+
 def submit(results: str | Path, server: str, token: str, method: str, split: str, description: str = "",
            authors: str = "", hardware: str = "", time_per_image: str = "", training_data: str = "",
            public: bool = False, part: str = "test", paper: str = "", code: str = "") -> dict:
@@ -81,4 +95,4 @@ def submit(results: str | Path, server: str, token: str, method: str, split: str
         raise TdofError(f"cannot reach the server {server}: {getattr(e, 'reason', e)}") from None
 
 
-__all__ = ["refusal_line", "submit"]
+__all__ = ["queue_line", "refusal_line", "submit"]

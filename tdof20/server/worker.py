@@ -168,6 +168,7 @@ def run_worker(cfg: ServerConfig, once: bool = False, poll_s: float = 1.0, pause
     store = Store(cfg.data)  # (the folder first: the SQLite file lies in it)
     engine = make_engine(cfg.db_url)
     init_db(engine)
+    scorer_version()  # (fixed now, for this process: the scorer it imported, whatever lands on disk later)
     name = f"{socket.gethostname()}:{os.getpid()}"
     done = 0
     wait = 0.0
