@@ -465,3 +465,122 @@ def test_the_journal_is_append_only_and_survives_a_torn_line(tmp_path):
         append_entry(tmp_path / "w2", {"op": "place", "object": 0, "obj_id": 5, "how": "drag",
                                        "T_ref_model": [2.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]})
     assert a["id"] == 1 and json.loads(path.read_bytes().split(b"\n")[0])["op"] == "place"
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid``'s descendants (from /proc)."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            parent[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == p]
+        out += kids
+        todo += kids
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_a_killed_app_leaves_no_relabel_behind_and_its_port_is_free_at_once(built, tmp_path):
+    import http.client
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    sc = copy_scene(built, tmp_path)
+    scene = sc["scene"]
+    cfg = read_json(scene / "work" / "config.json")
+    cfg["label"].update(workers=2, chunk=1)     # the relabel's label stage on worker processes
+    write_json(scene / "work" / "config.json", cfg)
+
+    def shift(mm: float) -> None:   # a pose change: every frame is labelled again by the next relabel
+        p = read_json(scene / "work" / "placements.json")["placements"][0]
+        T = np.asarray(p["T_ref_model"], float).reshape(4, 4)
+        T[0, 3] += mm
+        append_entry(scene / "work", {"op": "place", "object": int(p["index"]), "obj_id": int(p["obj_id"]),
+                                      "how": "set", "T_ref_model": T.ravel().tolist()})
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def start() -> subprocess.Popen:
+        app = subprocess.Popen([sys.executable, "-m", "tdof20", "annotate", "review", str(scene), "--port", str(port)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        deadline = time.monotonic() + 90
+        while True:
+            assert app.poll() is None, f"the app did not start: {app.stdout.read()}"
+            assert time.monotonic() < deadline, "the app did not answer"
+            try:
+                c = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+                c.request("GET", "/api/revision")
+                if c.getresponse().status == 200:
+                    return app, c        # kept open (keep-alive): the app's side closes it when killed
+            except OSError:
+                time.sleep(0.2)
+
+    def relabel_until_workers(app: subprocess.Popen) -> list[int]:
+        answer: list = []
+
+        def post():
+            try:
+                c = http.client.HTTPConnection("127.0.0.1", port, timeout=300)
+                c.request("POST", "/api/relabel", body="{}", headers={"Content-Type": "application/json"})
+                r = c.getresponse()
+                answer.append((r.status, r.read()[:300]))
+            except OSError as e:
+                answer.append(e)
+        threading.Thread(target=post, daemon=True).start()
+        deadline = time.monotonic() + 180
+        while True:
+            kids = _tree(app.pid)
+            if len(kids) >= 3:        # the relabel, its forkserver, a label worker
+                return kids
+            assert not answer and time.monotonic() < deadline, f"no label workers seen ({kids}; {answer})"
+            time.sleep(0.05)
+
+    shift(0.3)
+    app, conn = start()
+    kids = relabel_until_workers(app)
+    app.send_signal(signal.SIGKILL)                     # kill -9: nothing of the app runs any more
+    app.wait(10)
+    deadline = time.monotonic() + 15
+    while any(_alive(p) for p in kids):
+        assert time.monotonic() < deadline, f"left behind: {[p for p in kids if _alive(p)]}"
+        time.sleep(0.05)
+    masks = sorted((p.name, p.stat().st_mtime_ns) for p in (scene / "mask_visib").iterdir())
+    time.sleep(1.0)
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in (scene / "mask_visib").iterdir()) == masks  # nobody writes
+
+    # the same port at once (its last connections in TIME_WAIT), and Ctrl+C stops a relabel too
+    app2, conn2 = start()
+    try:
+        shift(0.3)          # (every frame's pose changes again)
+        kids = relabel_until_workers(app2)
+        app2.send_signal(signal.SIGINT)
+        app2.wait(30)
+        deadline = time.monotonic() + 15
+        while any(_alive(p) for p in kids):
+            assert time.monotonic() < deadline, f"left behind: {[p for p in kids if _alive(p)]}"
+            time.sleep(0.05)
+    finally:
+        if app2.poll() is None:
+            app2.kill()
+    # what the killed relabels wrote is resumed by the next run
+    s = annotate(sc["raw"], scene, models_dir=sc["models"], cfg=CFG, progress=False)
+    assert s["label"]["labelled"] + s["label"]["already_done"] == 12 and not s["stages"]["label"].get("error")
