@@ -7,15 +7,18 @@ summarised by :class:`tdof20.scoring.evaluation.ObjectEval`.
 
 from __future__ import annotations
 
+import hashlib
 import time as _time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from tdof20.dataset.results import Results
+from tdof20.formats.io import png_header
 from tdof20.scoring import metrics as M
-from tdof20.scoring.dataset_view import DatasetView
+from tdof20.scoring.dataset_view import DatasetView, decode_depth
 from tdof20.scoring.evaluation import THREADS
+from tdof20.scoring.vsd_cache import BLOCK, FORMAT, GtCache, digest, encode, unpack
 
 
 def greedy_count(E: np.ndarray, th: float) -> int:
@@ -44,10 +47,12 @@ def greedy_counts(E: np.ndarray, th: np.ndarray) -> np.ndarray:
     return count
 
 
-def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: dict, timings: dict) -> dict:
+def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: dict, timings: dict,
+                targets: list | None = None, cache: GtCache | None = None) -> dict:
     """Per object {"vsd": (n,10,10), "mssd": (n,10), "mspd": (n,10)} bool: instance matched at
     each (tau and) threshold. ``recs``: per target with estimates (obj, scene, im, count, its top
-    ``count`` rows, first instance slot)."""
+    ``count`` rows, first instance slot). ``targets`` (every target's (obj, scene, im, count)) and
+    ``cache``: VSD's ground-truth half kept on disk (:func:`vsd_errors`)."""
     want = {m for m in ("vsd", "mssd", "mspd") if ("ar_" + m) in keys or "ar" in keys}
     nT = len(M.MSSD_THRESHOLDS)
     out = {ob: {"vsd": np.zeros((n, len(M.VSD_TAUS), len(M.VSD_THRESHOLDS)), bool) if "vsd" in want else None,
@@ -57,14 +62,15 @@ def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: d
     for ob in out:
         out[ob] = {k: v for k, v in out[ob].items() if v is not None}
     # every (estimate, valid ground truth) pair of every target
-    p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, p_exact = [], [], [], [], [], [], [], []
+    p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, p_exact, p_gid = [], [], [], [], [], [], [], [], []
     blocks = []  # per target: (obj, first pair, n_est, n_gt, slot)
     for ob, s, im, cnt, rows, slot in recs:
         gts = ds.bop_instances(s, im, ob, cnt)
         K = ds.scene(s).K[im]
         blocks.append((ob, len(p_obj), len(rows), len(gts), slot, cnt))
         for r in rows:
-            for _, R, t in gts:
+            for gid, R, t in gts:
+                p_gid.append(gid)
                 p_obj.append(ob)
                 p_scene.append(s)
                 p_im.append(im)
@@ -121,7 +127,8 @@ def bop_matches(recs: list, res: Results, ds: DatasetView, keys: tuple, sizes: d
     errs["mssd"], errs["mspd"] = mssd_e, mspd_e
     if "vsd" in want:
         tic = _time.perf_counter()
-        errs["vsd"] = vsd_errors(ds, res, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings)
+        errs["vsd"] = vsd_errors(ds, res, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings,
+                                 np.asarray(p_gid, np.int64), targets, cache)
         timings["vsd"] = _time.perf_counter() - tic
     # matching: single targets at once, several instances greedily (BOP19)
     ths = {"mssd": M.MSSD_THRESHOLDS, "mspd": M.MSPD_THRESHOLDS, "vsd": M.VSD_THRESHOLDS}
@@ -155,46 +162,182 @@ def _depth_for_vsd(raw: np.ndarray, scale: float) -> np.ndarray:
     return raw if scale == 1.0 else raw.astype(np.float32) * np.float32(scale)
 
 
-def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings,
-                chunk: int = 32) -> np.ndarray:
-    """VSD (n, 10 taus) of every pair, image by image: chunks of ``chunk`` test depths, the next
-    chunk read by a thread while this one is scored (open3d's ray casting uses every core)."""
-    n = len(p_obj)
-    out = np.ones((n, len(M.VSD_TAUS)))
-    key = p_scene * (1 << 32) + p_im
-    order = np.argsort(key, kind="stable")
-    ims, first = np.unique(key[order], return_index=True)
-    bounds = np.r_[first, n]
-    chunks = [range(i, min(len(ims), i + chunk)) for i in range(0, len(ims), chunk)]
-    t_read = [0.0]
+def _footprints(ds: DatasetView, obj: np.ndarray, R, t, K, size: np.ndarray):
+    """:meth:`DepthRenderer.footprints` of poses of several objects and image sizes ((h, w) each):
+    boxes (n,4) and polygons, in the poses' order."""
+    n = len(obj)
+    boxes = np.zeros((n, 4), np.int64)
+    polys: list = [None] * n
+    groups = np.unique(np.column_stack([obj, size]), axis=0) if n else np.zeros((0, 3), np.int64)
+    for ob, h, w in groups.tolist():
+        sel = np.flatnonzero((obj == ob) & (size[:, 0] == h) & (size[:, 1] == w))
+        b, p = ds.renderer(int(ob)).footprints(R[sel], t[sel], K[sel], int(w), int(h))
+        boxes[sel] = b
+        for i, pp in zip(sel.tolist(), p):
+            polys[i] = pp
+    return boxes, polys
 
-    def load(ch):
-        tic = _time.perf_counter()
-        imgs = [_depth_for_vsd(*ds.depth_raw(int(ims[i] >> 32), int(ims[i] & 0xFFFFFFFF))) for i in ch]
+
+def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, p_t, p_K, timings,
+               p_gid=None, targets=None, cache: GtCache | None = None) -> np.ndarray:
+    """VSD (n, 10 taus) of every pair, block by block of a scene's images (:data:`BLOCK` image ids):
+    a thread reads the next block's depth PNGs while this one is scored, and keeps of each image
+    only what the pairs' footprints cover. The ground-truth half (each instance's V_g,
+    :class:`~tdof20.scoring.metrics.vsd.VisibleGt`) is computed once per instance and, with
+    ``cache`` (:class:`~tdof20.scoring.vsd_cache.GtCache`) writable, kept on disk for every
+    ``targets`` instance ((obj, scene, im, inst_count) each), so a later scoring only renders the
+    estimates. ``p_gid``: each pair's ground-truth index in its image (default: told apart by pose)."""
+    n = len(p_obj)
+    T = len(M.VSD_TAUS)
+    out = np.ones((n, T))
+    # the ground-truth instances: the pairs', and (kept) every target's
+    keep = cache is not None and cache.writable() and targets is not None
+    inst: dict[tuple, int] = {}
+    i_obj, i_scene, i_im, i_gid, i_R, i_t, i_K = [], [], [], [], [], [], []
+
+    def add(ob, s, im, gid, R, t, K) -> int:
+        k = (int(s), int(im), int(ob), int(gid))
+        if k not in inst:
+            inst[k] = len(i_obj)
+            for lst, v in zip((i_obj, i_scene, i_im, i_gid, i_R, i_t, i_K), (ob, s, im, gid, R, t, K)):
+                lst.append(v)
+        return inst[k]
+
+    if p_gid is None:  # instances told apart by their pose
+        p_gid = np.unique(np.concatenate([p_R.reshape(n, 9), p_t], axis=1), axis=0, return_inverse=True)[1].reshape(-1)
+    p_inst = np.array([add(*a) for a in zip(p_obj.tolist(), p_scene.tolist(), p_im.tolist(), np.asarray(p_gid).tolist(),
+                                            p_R, p_t, p_K)], np.int64).reshape(n)
+    if keep:
+        for ob, s, im, cnt in targets:
+            K = ds.scene(s).K[im]
+            for gid, R, t in ds.bop_instances(s, im, ob, cnt):
+                add(ob, s, im, gid, R, t, K)
+    m = len(i_obj)
+    i_obj, i_scene, i_im, i_gid = (np.asarray(x, np.int64).reshape(m) for x in (i_obj, i_scene, i_im, i_gid))
+    i_R, i_t, i_K = (np.asarray(x, np.float64).reshape((m,) + sh) for x, sh in ((i_R, (3, 3)), (i_t, (3,)),
+                                                                                 (i_K, (3, 3))))
+    # blocks of images, in order; each: its instances and pairs
+    bkey = i_scene * (1 << 32) + i_im // BLOCK
+    blocks = np.unique(bkey)
+    t_read = [0.0, 0.0]
+    first_pair = np.full(m, -1, np.int64)
+    first_pair[p_inst[::-1]] = np.arange(n)[::-1]
+
+    def load(b):
+        """Read block b: its images' PNGs (bytes digested), every pose's footprint, and the test depth
+        on each pair's raster (its estimate's and ground truth's boxes) and on each instance without
+        a pair's (its box): images are dropped once cropped."""
+        tic, cpu = _time.perf_counter(), _time.thread_time()
+        ii = np.flatnonzero(bkey == b)
+        pp = np.flatnonzero(np.isin(p_inst, ii))
+        s = int(i_scene[ii[0]])
+        ims = np.unique(i_im[ii])
+        data = {int(im): ds.depth_bytes(s, int(im)) for im in ims}
+        size = {im: png_header(ds.depth_path(s, im), "depth", d) for im, d in data.items()}
+        bi = {im: k for k, im in enumerate(data)}
+        szi = np.array([size[int(im)] for im in i_im[ii]], np.int64).reshape(-1, 2)
+        szp = np.array([size[int(im)] for im in p_im[pp]], np.int64).reshape(-1, 2)
+        bg, pg = _footprints(ds, i_obj[ii], i_R[ii], i_t[ii], i_K[ii], szi)
+        rows = p_row[pp]
+        be, pe = _footprints(ds, p_obj[pp], res.R[rows], res.t[rows], p_K[pp], szp)
+        loc = {int(g): k for k, g in enumerate(ii)}  # instance -> its index in the block
+        pl = np.array([loc[int(g)] for g in p_inst[pp]], np.int64)
+        alone = np.flatnonzero(first_pair[ii] < 0)  # instances without a pair
+        empty = np.zeros((len(alone), 4), np.int64)
+        ras = M.Rasters(np.concatenate([be, empty]), np.concatenate([bg[pl], bg[alone]]),
+                        dtype=np.uint16)
+        # each instance's raster: its first pair's (in the block), else its own
+        sel_i = np.empty(len(ii), np.int64)
+        sel_i[alone] = len(pp) + np.arange(len(alone))
+        seen = np.full(len(ii), -1, np.int64)
+        seen[pl[::-1]] = np.arange(len(pp))[::-1]
+        has = seen >= 0
+        sel_i[has] = seen[has]
+        owner = np.concatenate([np.array([bi[int(im)] for im in p_im[pp]], np.int64).reshape(-1),
+                                np.array([bi[int(im)] for im in i_im[ii][alone]], np.int64).reshape(-1)])
+        order = np.argsort(owner, kind="stable")
+        digests = {}
+        ras.depth = None
+        pos = 0
+        for im, d in data.items():
+            path = ds.depth_path(s, im)
+            digests[im] = hashlib.sha256(d).hexdigest()
+            img = _depth_for_vsd(decode_depth(d, path), ds.depth_scale(s, im))
+            if img.dtype != np.uint16 and ras.dtype == np.uint16:  # a depth_scale != 1 in the block
+                ras.dtype = np.float32
+                if ras.depth is not None:
+                    ras.depth = ras.depth.astype(np.float32)
+            k = bi[im]
+            while pos < len(order) and owner[order[pos]] == k:
+                ras.crop(int(order[pos]), img)
+                pos += 1
+        if ras.depth is None:
+            ras.depth = np.zeros(ras.total, ras.dtype)
         t_read[0] += _time.perf_counter() - tic
-        return imgs
+        t_read[1] += _time.thread_time() - cpu
+        return ii, pp, pl, bg, pg, be, pe, ras, sel_i, szi, szp, digests, s
 
     t_wait = 0.0
     with ThreadPoolExecutor(max_workers=1) as reader:
-        nxt = reader.submit(load, chunks[0]) if chunks else None
-        for ci, ch in enumerate(chunks):
+        nxt = reader.submit(load, blocks[0]) if len(blocks) else None
+        for bk, b in enumerate(blocks):
             tic = _time.perf_counter()
-            imgs = nxt.result()
+            ii, pp, pl, bg, pg, be, pe, ras, sel_i, szi, szp, digests, s = nxt.result()
             t_wait += _time.perf_counter() - tic
-            nxt = reader.submit(load, chunks[ci + 1]) if ci + 1 < len(chunks) else None
-            for shp in {im.shape for im in imgs}:  # one image size per stack
-                local = [k for k, im in enumerate(imgs) if im.shape == shp]
-                stack = [imgs[k] for k in local]  # sampled where the footprints are: no copy
-                sel = np.concatenate([order[bounds[ch[k]]:bounds[ch[k] + 1]] for k in local])
-                img_of = np.concatenate([np.full(bounds[ch[k] + 1] - bounds[ch[k]], j) for j, k in enumerate(local)])
-                for ob in np.unique(p_obj[sel]):
-                    m = p_obj[sel] == ob
-                    idx = sel[m]
-                    r = p_row[idx]
-                    out[idx] = M.vsd_batch(ds.renderer(int(ob)), res.R[r], res.t[r], p_R[idx], p_t[idx], p_K[idx],
-                                           stack, img_of[m], ds.model(int(ob)).diameter)
+            nxt = reader.submit(load, blocks[bk + 1]) if bk + 1 < len(blocks) else None
+            # the ground truths' V_g: kept, or computed (and kept)
+            objs = np.unique(i_obj[ii])
+            path = key = None
+            stored = None
+            if keep:
+                ident = np.column_stack([i_obj[ii], i_im[ii], i_gid[ii]])
+                path = cache.path(s, int(b & 0xFFFFFFFF), digest(FORMAT, ident))
+                key = digest(FORMAT, repr(M.VSD_DELTA), ident, i_R[ii], i_t[ii], i_K[ii], szi,
+                             *[ds.mesh_digest(int(o)) for o in objs],
+                             *[f"{im}:{dg}:{ds.depth_scale(s, im)!r}" for im, dg in sorted(digests.items())])
+                stored = cache.load(path, key)
+            groups = []  # (object, h, w, block indices) of the instances
+            for ob in objs:
+                sel = np.flatnonzero(i_obj[ii] == ob)
+                for (h, w) in np.unique(szi[sel], axis=0).tolist():
+                    groups.append((int(ob), int(h), int(w), sel[(szi[sel, 0] == h) & (szi[sel, 1] == w)]))
+            parts = None
+            if stored is not None:
+                try:
+                    packed = unpack(stored)
+                    if len(packed) != len(ii):
+                        raise ValueError("not the block's instances")
+                    parts = []
+                    for ob, h, w, g in groups:
+                        sub = packed.take(g)
+                        parts.append(M.VisibleGt.from_stored(ds.renderer(ob), i_R[ii][g], i_t[ii][g], i_K[ii][g],
+                                                             sub.boxes, sub.start, sub.idx, sub.qi, w, h))
+                except Exception:  # a damaged file: computed again (and rewritten)
+                    parts = None
+            fresh = parts is None
+            if fresh:
+                parts = [M.visible_gt(ds.renderer(ob), i_R[ii][g], i_t[ii][g], i_K[ii][g], bg[g], [pg[j] for j in g],
+                                      ras, sel_i[g], w, h) for ob, h, w, g in groups]
+            order = np.concatenate([g for *_, g in groups])
+            inv = np.empty(len(order), np.int64)
+            inv[order] = np.arange(len(order))
+            gt_block = M.VisibleGt.concatenate(parts).take(inv)  # in the block's order
+            if fresh and keep:
+                cache.save(path, key, encode(gt_block))
+            # the estimates
+            for ob in np.unique(p_obj[pp]):
+                sel = np.flatnonzero(p_obj[pp] == ob)
+                for (h, w) in np.unique(szp[sel], axis=0).tolist():
+                    g = sel[(szp[sel, 0] == h) & (szp[sel, 1] == w)]
+                    rows = p_row[pp[g]]
+                    out[pp[g]] = M.vsd_estimates(ds.renderer(int(ob)), res.R[rows], res.t[rows], p_K[pp[g]], be[g],
+                                                 [pe[j] for j in g], gt_block.take(pl[g]), ras, g, int(w), int(h),
+                                                 ds.model(int(ob)).diameter)
     timings["depth_read"] = t_read[0]
+    timings["depth_read_cpu"] = t_read[1]  # the reading thread's CPU seconds
     timings["depth_wait"] = t_wait
+    if cache is not None:
+        timings["vsd_cache_hits"] = float(cache.hits)
     return out
 
 

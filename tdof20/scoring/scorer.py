@@ -34,6 +34,7 @@ from tdof20.dataset.results import Results, check_against_dataset, read_results,
 from tdof20.errors import TdofError
 from tdof20.scoring import metrics as M
 from tdof20.scoring.bop19 import bop_matches
+from tdof20.scoring.vsd_cache import GtCache
 from tdof20.scoring.dataset_view import DatasetView, Targets, load_targets, require_targets, targets_path
 from tdof20.scoring.evaluation import (ADD_THRESHOLD, ALL_KEYS, AUC_MAX, AUC_SE_TARGET, BOP_KEYS, METRIC_KEYS, METRICS,
                                        PROJ_PLOT_MAX, PROJ_THRESHOLD, THREADS, Evaluation, ObjectEval, proj_threshold)
@@ -274,12 +275,14 @@ def resolve_metrics(metrics: Any, ds: DatasetView, tg: Targets) -> tuple[tuple[s
 
 def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
              targets: str | Path | None = None, dataset: DatasetView | None = None,
-             metrics: Any = None, proj_px: float | None = None) -> Evaluation:
+             metrics: Any = None, proj_px: float | None = None, vsd_cache: bool = True) -> Evaluation:
     """Everything :func:`score` computes, with the per-target errors (for reports and plots).
     ``metrics``: None (the default set, see :func:`resolve_metrics`) or names from
     :data:`METRICS` ("add,proj,vsd,mssd,mspd,ar" or a list). ``proj_px``: the 2D projection
     threshold in pixels (default: 5 px at 640 pixels wide, scaled with each scene's image width,
-    :func:`~tdof20.scoring.evaluation.proj_threshold`)."""
+    :func:`~tdof20.scoring.evaluation.proj_threshold`). ``vsd_cache``: keep VSD's ground-truth half
+    in ROOT/.cache/vsd/ for the next scoring (:mod:`tdof20.scoring.vsd_cache`; the same scores
+    either way)."""
     proj_px = check_proj_px(proj_px)
     timings: dict[str, float] = {}
     t0 = _time.perf_counter()
@@ -382,7 +385,9 @@ def evaluate(results: Any, dataset_root: str | Path, split: str | None = None,
         for ob, kind, k, s, im, cnt, rows in where:
             n1, starts = slots[ob]
             recs.append((ob, s, im, cnt, rows, k if kind == 0 else n1 + int(starts[k])))
-        bop = bop_matches(recs, res, ds, keys, {ob: o.n for ob, o in objects.items()}, timings)
+        every = list(zip(tg.obj_id.tolist(), tg.scene_id.tolist(), tg.im_id.tolist(), tg.inst_count.tolist()))
+        bop = bop_matches(recs, res, ds, keys, {ob: o.n for ob, o in objects.items()}, timings, every,
+                          GtCache(ds.root) if vsd_cache else None)
         for ob, o in objects.items():
             o.bop = bop[ob]
         timings["bop"] = _time.perf_counter() - tic

@@ -28,8 +28,9 @@ from tdof20.scoring.metrics.mssd_mspd import (MAX_SYM_DISC_STEP, MSPD_THRESHOLDS
                                               symmetry_transformations)
 from tdof20.scoring.metrics.reference import (add, add_batch, adds, adds_batch, proj2d, proj2d_batch,
                                               relative_transform)
-from tdof20.scoring.metrics.vsd import (VSD_DELTA, VSD_TAUS, VSD_THRESHOLDS, DepthRenderer, depth_buffer, distance_image,
-                                        ray_norms, vsd_batch, vsd_from_depths)
+from tdof20.scoring.metrics.vsd import (VSD_DELTA, VSD_TAUS, VSD_THRESHOLDS, DepthRenderer, Rasters, VisibleGt,
+                                        depth_buffer, distance_image, ray_norms, visible_gt, vsd_batch, vsd_estimates,
+                                        vsd_from_depths)
 
 __all__ = [
     "add", "adds", "proj2d", "add_batch", "adds_batch", "proj2d_batch", "relative_transform",
@@ -39,6 +40,7 @@ __all__ = [
     "adds_cv_residuals",
     "VSD_DELTA", "VSD_TAUS", "VSD_THRESHOLDS", "MSSD_THRESHOLDS", "MSPD_THRESHOLDS", "MSPD_WIDTH",
     "MAX_SYM_DISC_STEP", "rotation_about", "symmetry_transformations", "project_points", "mssd", "mspd",
-    "ray_norms", "distance_image", "depth_buffer", "vsd_from_depths", "DepthRenderer", "vsd_batch", "TreeLevel", "PointTree",
+    "ray_norms", "distance_image", "depth_buffer", "vsd_from_depths", "DepthRenderer", "vsd_batch", "Rasters", "VisibleGt", "visible_gt",
+    "vsd_estimates", "TreeLevel", "PointTree",
     "make_point_tree", "mssd_fast", "mspd_fast",
 ]

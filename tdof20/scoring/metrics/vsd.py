@@ -230,14 +230,19 @@ class DepthRenderer:
         (k,2) int32 (u, v) of the projected hull vertices, or None for the whole box). A pixel
         whose centre lies more than a pixel outside the polygon cannot be hit; poses whose hull
         reaches depth <= 1 mm get the whole image and no polygon."""
-        X = np.einsum("bij,nj->bni", R, self.hull) + t[:, None, :]
-        H = np.einsum("bij,bnj->bni", K, X)
-        z = X[..., 2]
+        R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+        t = np.asarray(t, np.float64).reshape(-1, 3)
+        K = np.asarray(K, np.float64).reshape(-1, 3, 3)
+        B, n = len(R), len(self.hull)
+        # one matrix product for every pose's hull points (B,3,n), then each camera matrix
+        X = (R.reshape(B * 3, 3) @ self.hull.T).reshape(B, 3, n) + t[:, :, None]
+        H = np.matmul(K, X)
+        z = X[:, 2]
         near = (z <= 1.0).any(axis=1)  # the projection is unbounded: cast everything
         gone = (z <= 0.0).all(axis=1)  # rays (depth > 0) cannot reach it: nothing to see
-        zz = np.where(z > 0, H[..., 2], 1.0)
+        zz = np.where(z > 0, H[:, 2], 1.0)
         # pixel indices: pixel (u, v) samples (u, v) + RENDER_PIXEL_OFFSET
-        u, v = H[..., 0] / zz - RENDER_PIXEL_OFFSET, H[..., 1] / zz - RENDER_PIXEL_OFFSET
+        u, v = H[:, 0] / zz - RENDER_PIXEL_OFFSET, H[:, 1] / zz - RENDER_PIXEL_OFFSET
         out = np.stack([np.floor(v.min(1)) - 2, np.ceil(v.max(1)) + 3,
                         np.floor(u.min(1)) - 2, np.ceil(u.max(1)) + 3], axis=1)
         lim = np.array([height, height, width, width], np.float64)
@@ -248,8 +253,10 @@ class DepthRenderer:
         big = 1e6  # beyond this the polygon would overflow int32; the box alone is used
         skip = near | (boxes[:, 0] >= boxes[:, 1]) | (boxes[:, 2] >= boxes[:, 3]) | \
             (np.abs(u).max(axis=1) > big) | (np.abs(v).max(axis=1) > big)
-        uv = np.rint(np.stack([np.where(skip[:, None], 0, u), np.where(skip[:, None], 0, v)], axis=2)).astype(np.int32)
-        polys = [None if skip[b] else cv2.convexHull(uv[b]).reshape(-1, 2) for b in range(len(R))]
+        u[skip] = 0
+        v[skip] = 0
+        uv = np.rint(np.stack([u, v], axis=2)).astype(np.int32)
+        polys = [None if skip[b] else cv2.convexHull(uv[b]).reshape(-1, 2) for b in range(B)]
         return boxes, polys
 
     def boxes(self, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -257,26 +264,270 @@ class DepthRenderer:
         return self.footprints(R, t, K, width, height)[0]
 
 
-def _footprint_pixels(poly, box, U0: int, V0: int, W: int):
-    """(ys, xs) local to the box origin (U0, V0) of the pixels of ``box`` that the polygon (grown by
-    a 3-pixel-wide outline) covers, and their flat index in a W-wide raster at (U0, V0)."""
-    v0, v1, u0, u1 = (int(x) for x in box)
-    h, w = v1 - v0, u1 - u0
-    if poly is None:
-        ys, xs = np.divmod(np.arange(h * w), w)
+def _spans(polys, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels each pose's rays are cast through, as row spans: in each pose's box, the pixels
+    its polygon (grown by a 3-pixel-wide outline) covers, each row closed from its first to its
+    last such pixel (a superset: every pixel a ray can hit, and a few more no ray can). Returns
+    (pose, row v, first column, length) of every row with pixels, poses in order."""
+    rp, rv, rc, rl = [], [], [], []
+    for j, (poly, box) in enumerate(zip(polys, boxes)):
+        v0, v1, u0, u1 = (int(x) for x in box)
+        h, w = v1 - v0, u1 - u0
+        if h <= 0 or w <= 0:
+            continue
+        if poly is None:
+            first = np.zeros(h, np.int64)
+            n = np.full(h, w, np.int64)
+            rows = np.arange(h)
+        else:
+            m = np.zeros((h, w), np.uint8)
+            q = (poly - np.array([u0, v0], np.int32)).reshape(-1, 1, 2)
+            cv2.fillConvexPoly(m, q, 1)
+            cv2.polylines(m, [q], True, 1, 3)
+            rows = np.flatnonzero(m.any(axis=1))
+            m = m[rows]
+            first = m.argmax(axis=1)
+            n = w - m[:, ::-1].argmax(axis=1) - first
+        rp.append(np.full(len(rows), j, np.int64))
+        rv.append(rows + v0)
+        rc.append(first + u0)
+        rl.append(n)
+    if not rp:
+        z = np.zeros(0, np.int64)
+        return z, z, z, z
+    return tuple(np.concatenate(a).astype(np.int64) for a in (rp, rv, rc, rl))
+
+
+def _run_offsets(base: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """base[r] + 0, 1, ..., lengths[r] - 1 for every run r, concatenated (int64)."""
+    n = int(lengths.sum())
+    start = np.cumsum(lengths) - lengths
+    return np.repeat(base - start, lengths) + np.arange(n, dtype=np.int64)
+
+
+def _render(renderer, R, t, Ks, maps, rp, rv, rc, rl, w_img):
+    """Cast the rays of the spans (rp, rv, rc, rl) of poses (R, t, Ks): per pixel its depth as the
+    toolkit's depth buffer returns it (float32, 0 = none), that value (int32, DEPTH_BUFFER_MAX =
+    none), the norm of its integer (u, v) ray (float64), and each pose's first pixel (n+1,).
+    ``maps[j]``: :func:`ray_maps` of pose j's K, or None."""
+    n = len(R)
+    f = _run_offsets(rv * w_img + rc, rl)
+    cnt = np.bincount(rp, weights=rl, minlength=n).astype(np.int64)
+    ps = np.concatenate([[0], np.cumsum(cnt)])
+    N = len(f)
+    rays = np.empty((N, 6), np.float32)
+    one = maps[0] if n and all(m is maps[0] for m in maps) else None
+    if one is not None:  # one camera matrix: its maps gathered for every pixel at once
+        x_all, y_all, nrm = one[0].take(f), one[1].take(f), one[2].take(f)
     else:
-        m = np.zeros((h, w), np.uint8)
-        q = (poly - np.array([u0, v0], np.int32)).reshape(-1, 1, 2)
-        cv2.fillConvexPoly(m, q, 1)
-        cv2.polylines(m, [q], True, 1, 3)
-        ys, xs = np.nonzero(m)
-    ys = ys + (v0 - V0)
-    xs = xs + (u0 - U0)
-    return ys, xs, ys * W + xs
+        nrm = np.empty(N)
+    for j in np.flatnonzero(cnt):
+        a, b = int(ps[j]), int(ps[j + 1])
+        if one is not None:
+            x, y = x_all[a:b], y_all[a:b]
+        elif maps[j] is not None:
+            fj = f[a:b]
+            x, y = maps[j][0].take(fj), maps[j][1].take(fj)
+            nrm[a:b] = maps[j][2].take(fj)
+        else:
+            # the render's rays through (u, v) + RENDER_PIXEL_OFFSET: ray_norms' x, y (the same
+            # float64 operations, bit for bit), without the norm it does not need
+            v, u = np.divmod(f[a:b], w_img)
+            Kj = Ks[j]
+            y = (v + RENDER_PIXEL_OFFSET - Kj[1, 2]) / Kj[1, 1]
+            x = (u + RENDER_PIXEL_OFFSET - Kj[0, 2] - Kj[0, 1] * y) / Kj[0, 0]
+            nrm[a:b] = ray_norms(Kj, u, v)[2]  # distance_image's norm (integer u, v)
+        Rj = R[j]
+        for i in range(3):  # R^T (x, y, 1): the rays in the model frame
+            rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
+        rays[a:b, :3] = (-Rj.T @ t[j]).astype(np.float32)  # the camera centre in the model frame
+    z = renderer.cast_rays(rays)
+    # the toolkit's depth buffer (depth_buffer's operations, with each pose's clip planes)
+    near, far = renderer.clip_planes(R, t)
+    ca, cb, mult, addi = depth_buffer_coefficients(near, far)
+    hit = z > 0
+    q = np.repeat(cb, cnt) / np.where(hit, z, np.float32(np.inf))  # float64 (z float32: the cast's t); misses: 0
+    np.subtract(np.repeat(ca, cnt), q, out=q)
+    np.rint(q, out=q)
+    np.clip(q, 0, DEPTH_BUFFER_MAX, out=q)
+    qi = q.astype(np.int32)
+    qi[~hit] = DEPTH_BUFFER_MAX
+    d = np.repeat(mult, cnt) / (_W32.take(qi) + np.repeat(addi, cnt))
+    d[qi == DEPTH_BUFFER_MAX] = 0.0
+    return d, qi, nrm, ps
+
+
+def _stored_depths(renderer, R, t, start, qi) -> np.ndarray:
+    """The float32 depths of depth-buffer values ``qi`` of poses (R, t) (pose j's: [start[j],
+    start[j+1])), as :func:`_render` turns them into depths."""
+    near, far = renderer.clip_planes(R, t)
+    _, _, mult, addi = depth_buffer_coefficients(near, far)
+    cnt = np.diff(start)
+    qi = qi.astype(np.int32)
+    d = np.repeat(mult, cnt) / (_W32.take(qi) + np.repeat(addi, cnt))
+    d[qi == DEPTH_BUFFER_MAX] = 0.0
+    return d
+
+
+class VisibleGt:
+    """The ground-truth half of VSD for B poses: what of each pose's render the test image shows,
+    V_g = {d_g > 0 and (d_g - d_test <= delta or d_test = 0)} — a function of the dataset alone, so it
+    can be kept between scorings. ``boxes`` (B,4) int64: the footprint boxes [v0, v1) x [u0, u1)
+    (:meth:`DepthRenderer.footprints`); ``start`` (B+1,): pose j's pixels are [start[j],
+    start[j+1]); ``idx`` int64: each V_g pixel's index in its box (row-major); ``dist`` float64:
+    d_g there (the distance from the camera centre); ``qi`` uint16: the depth-buffer value d_g
+    came from (d_g is the depth of ``qi`` times the ray's norm: :meth:`from_stored`)."""
+
+    def __init__(self, boxes, start, idx, dist, qi):
+        self.boxes, self.start, self.idx, self.dist, self.qi = boxes, start, idx, dist, qi
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.start)
+
+    def take(self, sel) -> "VisibleGt":
+        """The poses ``sel`` (indices, repeats allowed), in that order."""
+        sel = np.asarray(sel, np.int64)
+        cnt = self.counts[sel]
+        pix = _run_offsets(self.start[sel], cnt)
+        return VisibleGt(self.boxes[sel], np.concatenate([[0], np.cumsum(cnt)]), self.idx[pix],
+                         None if self.dist is None else self.dist[pix], self.qi[pix])
+
+    @staticmethod
+    def concatenate(parts: list["VisibleGt"]) -> "VisibleGt":
+        if not parts:
+            z = np.zeros(0, np.int64)
+            return VisibleGt(np.zeros((0, 4), np.int64), np.zeros(1, np.int64), z, np.zeros(0), np.zeros(0, np.uint16))
+        cnt = np.concatenate([p.counts for p in parts])
+        return VisibleGt(np.concatenate([p.boxes for p in parts]), np.concatenate([[0], np.cumsum(cnt)]),
+                         np.concatenate([p.idx for p in parts]), np.concatenate([p.dist for p in parts]),
+                         np.concatenate([p.qi for p in parts]))
+
+    @staticmethod
+    def from_stored(renderer, R, t, Ks, boxes, start, idx, qi, width: int, height: int) -> "VisibleGt":
+        """The VisibleGt of poses (R, t, Ks) from its boxes, pixels and depth-buffer values alone
+        (as kept on disk): d_g recomputed exactly as when it was cast."""
+        R, t = _poses(R, t)
+        Ks = np.ascontiguousarray(_Ks(Ks, len(R)))
+        boxes = np.asarray(boxes, np.int64).reshape(-1, 4)
+        start = np.asarray(start, np.int64)
+        idx = np.asarray(idx, np.int64)
+        cnt = np.diff(start)
+        d = _stored_depths(renderer, R, t, start, qi)
+        pose = np.repeat(np.arange(len(R)), cnt)
+        bw = np.maximum(boxes[:, 3] - boxes[:, 2], 1)
+        ys, xs = np.divmod(idx, bw[pose])
+        v, u = ys + boxes[pose, 0], xs + boxes[pose, 2]
+        maps = _camera_maps(Ks, height, width)
+        nrm = np.empty(len(idx))
+        for j in np.flatnonzero(cnt):
+            a, b = int(start[j]), int(start[j + 1])
+            if maps[j] is not None:
+                nrm[a:b] = maps[j][2].take(v[a:b] * width + u[a:b])
+            else:
+                nrm[a:b] = ray_norms(Ks[j], u[a:b], v[a:b])[2]
+        return VisibleGt(boxes, start, idx, d * nrm, np.asarray(qi, np.uint16))
+
+
+def _camera_maps(Ks: np.ndarray, h: int, w: int) -> list:
+    """Per pose the ray maps of its camera matrix (:func:`_maps_for`: those used by many poses)."""
+    n = len(Ks)
+    if n == 0:
+        return []
+    uniq, inv, counts = np.unique(Ks.reshape(n, 9), axis=0, return_inverse=True, return_counts=True)
+    maps = [_maps_for(uniq[k].reshape(3, 3), h, w, int(counts[k])) for k in range(len(uniq))]
+    return [maps[k] for k in inv.reshape(-1)]
+
+
+def _chunks(area: np.ndarray, max_rays: int):
+    """Consecutive index ranges whose areas add up to about max_rays (at least one index each)."""
+    start = 0
+    cum = np.cumsum(area)
+    while start < len(area):
+        base = cum[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(cum, base + max_rays, side="right")))
+        yield start, stop
+        start = stop
+
+
+def _empty(box: np.ndarray) -> np.ndarray:
+    return (box[:, 0] >= box[:, 1]) | (box[:, 2] >= box[:, 3])
+
+
+class Rasters:
+    """n poses' rasters laid end to end in one flat canvas: pose j's covers [v0, v0 + h) x
+    [u0, u0 + w) of its image (the union of the boxes it is given; an empty box adds nothing) at
+    canvas[off[j]:off[j] + h*w], row-major. ``depth``: the test depth on the canvas (:meth:`crop`)."""
+
+    def __init__(self, *boxes: np.ndarray, dtype=np.float32):
+        self.dtype = dtype
+        bs = [np.asarray(b, np.int64).reshape(-1, 4) for b in boxes]
+        lo_v = np.min([np.where(_empty(b), np.iinfo(np.int64).max, b[:, 0]) for b in bs], axis=0)
+        hi_v = np.max([np.where(_empty(b), np.iinfo(np.int64).min, b[:, 1]) for b in bs], axis=0)
+        lo_u = np.min([np.where(_empty(b), np.iinfo(np.int64).max, b[:, 2]) for b in bs], axis=0)
+        hi_u = np.max([np.where(_empty(b), np.iinfo(np.int64).min, b[:, 3]) for b in bs], axis=0)
+        none = lo_v > hi_v
+        self.v0 = np.where(none, 0, lo_v)
+        self.u0 = np.where(none, 0, lo_u)
+        self.h = np.where(none, 0, hi_v - lo_v)
+        self.w = np.where(none, 0, hi_u - lo_u)
+        area = self.h * self.w
+        self.off = np.cumsum(area) - area
+        self.total = int(area.sum())
+        self.depth = None
+
+    def __len__(self) -> int:
+        return len(self.off)
+
+    def crop(self, j: int, image: np.ndarray) -> None:
+        """Copy pose j's part of its test depth image into ``depth`` (of the rasters' dtype, float32
+        by default: uint16 and float32 images' values exactly; allocated at the first call)."""
+        if self.depth is None:
+            self.depth = np.zeros(self.total, self.dtype)
+        a, h, w = int(self.off[j]), int(self.h[j]), int(self.w[j])
+        v0, u0 = int(self.v0[j]), int(self.u0[j])
+        self.depth[a:a + h * w].reshape(h, w)[...] = image[v0:v0 + h, u0:u0 + w]
+
+    def index(self, rp, rv, rc, rl) -> np.ndarray:
+        """The canvas index of every pixel of the spans (rp, rv, rc, rl)."""
+        return _run_offsets(self.off[rp] + (rv - self.v0[rp]) * self.w[rp] + (rc - self.u0[rp]), rl)
+
+
+def visible_gt(renderer: "DepthRenderer", R_gt, t_gt, K, boxes, polys, rasters: Rasters, sel, width: int,
+               height: int, delta: float = VSD_DELTA, max_rays: int = 1 << 18) -> VisibleGt:
+    """:class:`VisibleGt` of B ground-truth poses of one object with footprints (``boxes``,
+    ``polys``: :meth:`DepthRenderer.footprints`), each cast inside its footprint, against the test
+    depth of raster ``sel[j]`` of ``rasters`` (which covers its box)."""
+    Rg, tg = _poses(R_gt, t_gt)
+    Ks = np.ascontiguousarray(_Ks(K, len(Rg)))
+    sel = np.asarray(sel, np.int64)
+    if len(Rg) == 0:
+        return VisibleGt.concatenate([])
+    boxes = np.asarray(boxes, np.int64).reshape(-1, 4)
+    maps = _camera_maps(Ks, height, width)
+    bw = np.maximum(boxes[:, 3] - boxes[:, 2], 0)
+    area = np.maximum(boxes[:, 1] - boxes[:, 0], 0) * bw
+    parts = []
+    for a, b in _chunks(area, max_rays):
+        rp, rv, rc, rl = _spans(polys[a:b], boxes[a:b])
+        d, qi, nrm, ps = _render(renderer, Rg[a:b], tg[a:b], Ks[a:b], maps[a:b], rp, rv, rc, rl, width)
+        bx = boxes[a:b]
+        local = _run_offsets((rv - bx[rp, 0]) * bw[a:b][rp] + (rc - bx[rp, 2]), rl)
+        dtg = rasters.depth.take(rasters.index(sel[a:b][rp], rv, rc, rl)) * nrm
+        dg = d * nrm
+        vg = (dg > 0) & (((dg.astype(np.float32) - dtg.astype(np.float32)) <= delta) | (dtg == 0))
+        pose = np.repeat(np.arange(b - a), np.diff(ps))
+        cnt = np.bincount(pose[vg], minlength=b - a)
+        parts.append(VisibleGt(bx, np.concatenate([[0], np.cumsum(cnt)]), local[vg], dg[vg],
+                               qi[vg].astype(np.uint16)))
+    return VisibleGt.concatenate(parts)
 
 
 def vsd_batch(renderer: DepthRenderer, R_est, t_est, R_gt, t_gt, K, depth_test: np.ndarray, image: np.ndarray,
-              diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS, max_rays: int = 1 << 20) -> np.ndarray:
+              diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS, max_rays: int = 1 << 18) -> np.ndarray:
     """VSD (B,T) of B poses of one object, exactly :func:`vsd_from_depths` on full renders, but
     rendering only where it matters: per pose each render is cast inside the projected convex hull
     of the model (grown by a pixel, :meth:`DepthRenderer.footprints`; no other pixel can be hit),
@@ -286,106 +537,79 @@ def vsd_batch(renderer: DepthRenderer, R_est, t_est, R_gt, t_gt, K, depth_test: 
     Re, te = _poses(R_est, t_est)
     Rg, tg = _poses(R_gt, t_gt)
     Ks = np.ascontiguousarray(_Ks(K, len(Re)))
-    taus = np.asarray(taus, np.float64)
-    B, T = len(Re), len(taus)
-    h, w = depth_test[0].shape if len(depth_test) else (0, 0)
-    out = np.ones((B, T))
+    B = len(Re)
+    out = np.ones((B, len(np.asarray(taus))))
     if B == 0:
         return out
+    h, w = depth_test[0].shape
+    image = np.asarray(image, np.int64)
     be, pe = renderer.footprints(Re, te, Ks, w, h)
     bg, pg = renderer.footprints(Rg, tg, Ks, w, h)
+    ras = Rasters(be, bg, dtype=np.result_type(np.float32, depth_test[0].dtype))
+    ras.depth = np.zeros(ras.total, ras.dtype)
+    for j in range(B):
+        ras.crop(j, depth_test[image[j]])
+    gt = visible_gt(renderer, Rg, tg, Ks, bg, pg, ras, np.arange(B), w, h, delta, max_rays)
+    return vsd_estimates(renderer, Re, te, Ks, be, pe, gt, ras, np.arange(B), w, h, diameter, delta, taus, max_rays)
+
+
+def vsd_estimates(renderer: DepthRenderer, R_est, t_est, K, boxes, polys, gt: VisibleGt, rasters: Rasters, sel,
+                  width: int, height: int, diameter: float, delta: float = VSD_DELTA, taus=VSD_TAUS,
+                  max_rays: int = 1 << 18) -> np.ndarray:
+    """VSD (B,T) of B estimates of one object with footprints (``boxes``, ``polys``) against
+    their ground truths' V_g (``gt``, one per estimate), with the test depth of raster ``sel[j]``
+    of ``rasters`` (which covers both boxes). Estimates whose box does not meet their ground
+    truth's have VSD 1 for every tau (no pixel of theirs can be in V_g), without rendering."""
+    Re, te = _poses(R_est, t_est)
+    Ks = np.ascontiguousarray(_Ks(K, len(Re)))
+    taus = np.asarray(taus, np.float64)
+    sel = np.asarray(sel, np.int64)
+    B, T = len(Re), len(taus)
+    out = np.ones((B, T))
+    be, bg = np.asarray(boxes, np.int64).reshape(-1, 4), gt.boxes
     meet = (np.maximum(be[:, 0], bg[:, 0]) < np.minimum(be[:, 1], bg[:, 1])) & \
            (np.maximum(be[:, 2], bg[:, 2]) < np.minimum(be[:, 3], bg[:, 3]))
     todo = np.flatnonzero(meet)
-    area = (be[:, 1] - be[:, 0]) * (be[:, 3] - be[:, 2]) + (bg[:, 1] - bg[:, 0]) * (bg[:, 3] - bg[:, 2])
-    start = 0
-    while start < len(todo):  # chunks of about max_rays rays
-        cum = np.cumsum(area[todo[start:]])
-        stop = start + max(1, int(np.searchsorted(cum, max_rays, side="right")))
-        idx = todo[start:stop]
-        start = stop
-        out[idx] = _vsd_lists(renderer, Re[idx], te[idx], Rg[idx], tg[idx], Ks[idx], be[idx], bg[idx],
-                              [pe[i] for i in idx], [pg[i] for i in idx], depth_test, image[idx], diameter,
-                              delta, taus)
+    if not len(todo):
+        return out
+    maps = _camera_maps(Ks[todo], height, width)
+    area = (be[todo, 1] - be[todo, 0]) * (be[todo, 3] - be[todo, 2]) + \
+        (bg[todo, 1] - bg[todo, 0]) * (bg[todo, 3] - bg[todo, 2])
+    for a, b in _chunks(area, max_rays):
+        idx = todo[a:b]
+        out[idx] = _vsd_est(renderer, Re[idx], te[idx], Ks[idx], maps[a:b], be[idx], [polys[i] for i in idx],
+                            gt.take(idx), rasters, sel[idx], width, diameter, delta, taus)
     return out
 
 
-def _per_hit(coef: tuple, pose_of_hit: np.ndarray) -> tuple:
-    """Per-pose depth-buffer coefficients gathered for each hit."""
-    return tuple(c.take(pose_of_hit) for c in coef)
-
-
-def _vsd_lists(renderer, Re, te, Rg, tg, Ks, be, bg, pe, pg, depth_test, image, diameter, delta, taus):
+def _vsd_est(renderer, Re, te, Ks, maps, be, pe, gt: VisibleGt, rasters: Rasters, sel, w_img, diameter, delta, taus):
+    """VSD (n,T) of n estimates against their ground truths' V_g (``gt``, one per estimate)."""
     n = len(Re)
-    V0 = np.minimum(be[:, 0], bg[:, 0])
-    U0 = np.minimum(be[:, 2], bg[:, 2])
-    W = np.maximum(be[:, 3], bg[:, 3]) - U0
-    Hh = np.maximum(be[:, 1], bg[:, 1]) - V0
-    off = np.cumsum(W * Hh) - W * Hh  # each pose's raster (its two boxes' union) in one canvas
-    h_img, w_img = depth_test[0].shape
-    # per camera matrix used by many poses: its ray maps, gathered per pixel (8x cheaper than
-    # computing them pose by pose); the other poses compute theirs
-    uniq, inv, counts = np.unique(Ks.reshape(n, 9), axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    maps = [_maps_for(uniq[k].reshape(3, 3), h_img, w_img, int(counts[k])) for k in range(len(uniq))]
-    lists = {}
-    for key, R, t, bx, polys in (("g", Rg, tg, bg, pg), ("e", Re, te, be, pe)):
-        near, far = renderer.clip_planes(R, t)
-        px = [_footprint_pixels(polys[j], bx[j], int(U0[j]), int(V0[j]), int(W[j])) for j in range(n)]
-        cnt = np.array([len(q[0]) for q in px], np.int64)
-        ends = np.cumsum(cnt)
-        tot = int(ends[-1]) if n else 0
-        rays = np.empty((tot, 6), np.float32)
-        nrm = np.empty(tot)
-        dt = np.empty(tot)
-        cidx = np.empty(tot, np.int64)
-        org = np.empty((n, 3), np.float32)  # each pose's ray origin (the camera centre in the model frame)
-        # pose by pose: each pose's pixels stay in cache through the dozen operations on them
-        # (one pass over every pixel of the chunk per operation is several times slower)
-        for j, (ys, xs, fl) in enumerate(px):
-            a, b = int(ends[j] - cnt[j]), int(ends[j])
-            Kj = Ks[j]
-            v = ys + V0[j]
-            u = xs + U0[j]
-            mp = maps[inv[j]]
-            if mp is not None:
-                f = v * w_img + u
-                x, y, q = mp[0].take(f), mp[1].take(f), mp[2].take(f)
-            else:
-                # the render's rays through (u, v) + RENDER_PIXEL_OFFSET: ray_norms' x, y (the
-                # same float64 operations, bit for bit), without the norm it does not need
-                y = (v + RENDER_PIXEL_OFFSET - Kj[1, 2]) / Kj[1, 1]
-                x = (u + RENDER_PIXEL_OFFSET - Kj[0, 2] - Kj[0, 1] * y) / Kj[0, 0]
-                q = ray_norms(Kj, u, v)[2]  # distance_image's norm (integer u, v)
-            Rj = R[j]
-            for i in range(3):  # R^T (x, y, 1): the rays in the model frame
-                rays[a:b, 3 + i] = x * Rj[0, i] + y * Rj[1, i] + Rj[2, i]
-            org[j] = (-Rj.T @ t[j]).astype(np.float32)
-            nrm[a:b] = q
-            img = depth_test[image[j]]
-            dt[a:b] = img.ravel().take(v * img.shape[1] + u) * q
-            cidx[a:b] = fl + off[j]
-        pose = np.repeat(np.arange(n), cnt)
-        rays[:, :3] = org.take(pose, axis=0)
-        coef = depth_buffer_coefficients(near, far)  # per pose; per hit below
-        z = depth_buffer(renderer.cast_rays(rays), None, None, lambda hit: _per_hit(coef, pose.take(hit))) * nrm
-        lists[key] = (cidx, z, dt, pose)
-    cg, dg, dtg, pgi = lists["g"]
-    ce, de, dte, pei = lists["e"]
-    total = int(off[-1] + W[-1] * Hh[-1])
-    vg = (dg > 0) & (((dg.astype(np.float32) - dtg.astype(np.float32)) <= delta) | (dtg == 0))
-    vg_c = np.zeros(total, bool)
-    vg_c[cg[vg]] = True
-    dg_c = np.zeros(total, np.float64)
-    dg_c[cg] = dg
+    bg = gt.boxes
+    # V_g and d_g on each estimate's raster
+    ras = Rasters(be, bg)
+    cg = gt.counts
+    pg = np.repeat(np.arange(n), cg)
+    gy, gx = np.divmod(gt.idx, (bg[:, 3] - bg[:, 2])[pg])
+    ci = (gy + (bg[:, 0] - ras.v0)[pg]) * ras.w[pg] + gx + (bg[:, 2] - ras.u0 + ras.off)[pg]
+    vg_c = np.zeros(ras.total, bool)
+    vg_c[ci] = True
+    dg_c = np.zeros(ras.total, np.float64)
+    dg_c[ci] = gt.dist
+    # the estimates' renders
+    rp, rv, rc, rl = _spans(pe, be)
+    d, _, nrm, ps = _render(renderer, Re, te, Ks, maps, rp, rv, rc, rl, w_img)
+    ce = ras.index(rp, rv, rc, rl)
+    de = d * nrm
+    dte = rasters.depth.take(rasters.index(sel[rp], rv, rc, rl)) * nrm
+    pei = np.repeat(np.arange(n), np.diff(ps))
     vge = vg_c[ce]
     hit = de > 0
     ve = hit & ((((de.astype(np.float32) - dte.astype(np.float32)) <= delta) | (dte == 0)) | vge)
     inter = ve & vge
-    n_vg = np.bincount(pgi[vg], minlength=n)
     n_ve = np.bincount(pei[ve], minlength=n)
     n_inter = np.bincount(pei[inter], minlength=n)
-    n_union = n_vg + n_ve - n_inter
+    n_union = cg + n_ve - n_inter
     dist = np.abs(dg_c[ce[inter]] - de[inter]) / diameter
     k = np.searchsorted(taus, dist, side="right")  # the taus with dist >= tau: the first k
     T = len(taus)
