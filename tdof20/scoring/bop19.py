@@ -219,7 +219,7 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
     # blocks of images, in order; each: its instances and pairs
     bkey = i_scene * (1 << 32) + i_im // BLOCK
     blocks = np.unique(bkey)
-    t_read = [0.0, 0.0]
+    t_read = [0.0, 0.0, 0.0, 0.0]  # wall, CPU, footprints' CPU, decoding's CPU
     first_pair = np.full(m, -1, np.int64)
     first_pair[p_inst[::-1]] = np.arange(n)[::-1]
 
@@ -229,6 +229,7 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
         a pair's (its box): images are dropped once cropped."""
         tic, cpu = _time.perf_counter(), _time.thread_time()
         ii = np.flatnonzero(bkey == b)
+        ii = ii[np.lexsort((i_gid[ii], i_obj[ii], i_im[ii]))]  # in an order of their own (the file's)
         pp = np.flatnonzero(np.isin(p_inst, ii))
         s = int(i_scene[ii[0]])
         ims = np.unique(i_im[ii])
@@ -237,9 +238,11 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
         bi = {im: k for k, im in enumerate(data)}
         szi = np.array([size[int(im)] for im in i_im[ii]], np.int64).reshape(-1, 2)
         szp = np.array([size[int(im)] for im in p_im[pp]], np.int64).reshape(-1, 2)
+        c0 = _time.thread_time()
         bg, pg = _footprints(ds, i_obj[ii], i_R[ii], i_t[ii], i_K[ii], szi)
         rows = p_row[pp]
         be, pe = _footprints(ds, p_obj[pp], res.R[rows], res.t[rows], p_K[pp], szp)
+        t_read[2] += _time.thread_time() - c0
         loc = {int(g): k for k, g in enumerate(ii)}  # instance -> its index in the block
         pl = np.array([loc[int(g)] for g in p_inst[pp]], np.int64)
         alone = np.flatnonzero(first_pair[ii] < 0)  # instances without a pair
@@ -262,7 +265,9 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
         for im, d in data.items():
             path = ds.depth_path(s, im)
             digests[im] = hashlib.sha256(d).hexdigest()
+            c0 = _time.thread_time()
             img = _depth_for_vsd(decode_depth(d, path), ds.depth_scale(s, im))
+            t_read[3] += _time.thread_time() - c0
             if img.dtype != np.uint16 and ras.dtype == np.uint16:  # a depth_scale != 1 in the block
                 ras.dtype = np.float32
                 if ras.depth is not None:
@@ -310,8 +315,8 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
                     parts = []
                     for ob, h, w, g in groups:
                         sub = packed.take(g)
-                        parts.append(M.VisibleGt.from_stored(ds.renderer(ob), i_R[ii][g], i_t[ii][g], i_K[ii][g],
-                                                             sub.boxes, sub.start, sub.idx, sub.qi, w, h))
+                        parts.append(M.VisibleGt.from_stored(ds.renderer(ob), i_R[ii][g], i_t[ii][g], sub.boxes,
+                                                             sub.start, sub.idx, sub.qi))
                 except Exception:  # a damaged file: computed again (and rewritten)
                     parts = None
             fresh = parts is None
@@ -334,7 +339,9 @@ def vsd_errors(ds: DatasetView, res: Results, p_obj, p_scene, p_im, p_row, p_R, 
                                                  [pe[j] for j in g], gt_block.take(pl[g]), ras, g, int(w), int(h),
                                                  ds.model(int(ob)).diameter)
     timings["depth_read"] = t_read[0]
-    timings["depth_read_cpu"] = t_read[1]  # the reading thread's CPU seconds
+    timings["depth_read_cpu"] = t_read[1]  # the reading thread's CPU seconds, of which
+    timings["depth_read_footprints_cpu"] = t_read[2]  # the poses' footprints
+    timings["depth_read_decode_cpu"] = t_read[3]  # the depth PNGs decoded
     timings["depth_wait"] = t_wait
     if cache is not None:
         timings["vsd_cache_hits"] = float(cache.hits)

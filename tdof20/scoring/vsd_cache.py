@@ -8,9 +8,9 @@ images (:data:`BLOCK` image ids) and target set, and the next scoring reads them
 (about half of VSD's rays). What a file is valid for is in its name's and its ``key``'s digest: the
 format, VSD's delta, the instances (object, image, ground-truth index, R, t, K), the meshes' bytes,
 and per image its depth PNG's bytes and depth_scale — any change and the file is not used (it is
-rebuilt). Pixels are stored as each instance's V_g bitmask over its footprint box and the 16-bit
-depth-buffer values (d_g is recomputed from them exactly: :meth:`VisibleGt.from_stored`),
-differenced along the pixels and deflated (ISA-L): about 3 bytes a visible pixel.
+rebuilt). Pixels are stored as their indices in the instances' footprint boxes and their 16-bit
+depth-buffer values (the depth is recomputed from them exactly: :meth:`VisibleGt.from_stored`),
+both differenced along the pixels and deflated (ISA-L).
 
 The cache holds ground truth: it stays in ROOT/.cache/, which ``dataset publish`` never copies. A
 dataset folder the scorer cannot write to is scored without it (computed each time); a file that
@@ -30,7 +30,7 @@ from isal import isal_zlib
 from tdof20.scoring.metrics.vsd import VisibleGt
 
 BLOCK = 128  # image ids per cache file (and per block the scorer reads at once)
-FORMAT = "tdof20-vsd-gt-1"
+FORMAT = "tdof20-vsd-gt-2"
 
 
 def _blob(a: np.ndarray) -> np.ndarray:
@@ -42,39 +42,36 @@ def _unblob(b: np.ndarray, dtype) -> np.ndarray:
 
 
 def encode(gt: VisibleGt) -> dict[str, np.ndarray]:
-    """The arrays a cache file holds for ``gt``: boxes, per-pose counts, the V_g bitmasks (each pose
-    its box's pixels, padded to whole bytes) and the depth-buffer values (uint16, differenced)."""
+    """The arrays a cache file holds for ``gt``: boxes, per-pose pixel counts, the V_g pixels (their
+    indices on the poses' box rasters laid end to end, differenced) and their depth-buffer values
+    (uint16, differenced modulo 2^16), both deflated."""
     boxes = gt.boxes.astype(np.int32)
-    area = np.maximum(boxes[:, 1] - boxes[:, 0], 0).astype(np.int64) * np.maximum(boxes[:, 3] - boxes[:, 2], 0)
-    nbytes = (area + 7) // 8
-    boff = np.concatenate([[0], np.cumsum(nbytes)]) * 8
-    bits = np.zeros(int(boff[-1]), np.uint8)
-    pose = np.repeat(np.arange(len(gt)), gt.counts)
-    bits[boff[:-1][pose] + gt.idx] = 1
+    area = np.maximum(gt.boxes[:, 1] - gt.boxes[:, 0], 0) * np.maximum(gt.boxes[:, 3] - gt.boxes[:, 2], 0)
+    off = np.cumsum(area) - area
+    g = np.repeat(off, gt.counts) + gt.idx  # increasing
+    if len(g) and g[-1] >= 1 << 32:
+        raise ValueError("too many pixels for one file")
     qi = gt.qi.astype(np.uint16)
-    dq = np.diff(qi, prepend=np.uint16(0))  # modulo 2^16
-    return {"boxes": boxes, "counts": gt.counts.astype(np.int64), "mask": _blob(np.packbits(bits)),
-            "qi": _blob(dq)}
+    return {"boxes": boxes, "counts": gt.counts.astype(np.int64),
+            "pixels": _blob(np.diff(g, prepend=0).astype(np.uint32)),
+            "qi": _blob(np.diff(qi, prepend=np.uint16(0)))}
 
 
 def unpack(arrays) -> VisibleGt:
-    """:func:`encode`'s arrays as a :class:`VisibleGt` without its distances (``dist`` None: they
-    need each pose's renderer and camera, :meth:`VisibleGt.from_stored`)."""
+    """:func:`encode`'s arrays as a :class:`VisibleGt` without its depths (``depth`` None: they need
+    each pose's clip planes, :meth:`VisibleGt.from_stored`)."""
     boxes = np.asarray(arrays["boxes"], np.int64).reshape(-1, 4)
     counts = np.asarray(arrays["counts"], np.int64)
     area = np.maximum(boxes[:, 1] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 2], 0)
-    boff = np.concatenate([[0], np.cumsum((area + 7) // 8)]) * 8
-    bits = np.unpackbits(_unblob(arrays["mask"], np.uint8))
-    if len(bits) != boff[-1]:
-        raise ValueError("mask of the wrong size")
-    flat = np.flatnonzero(bits)
-    pose = np.searchsorted(boff, flat, side="right") - 1
-    if not np.array_equal(np.bincount(pose, minlength=len(boxes)), counts):
-        raise ValueError("mask and counts disagree")
+    off = np.cumsum(area) - area
+    g = np.cumsum(_unblob(arrays["pixels"], np.uint32), dtype=np.int64)
     qi = np.cumsum(_unblob(arrays["qi"], np.uint16), dtype=np.uint16)
-    if len(qi) != len(flat):
-        raise ValueError("depth values and mask disagree")
-    return VisibleGt(boxes, np.concatenate([[0], np.cumsum(counts)]), flat - boff[pose], None, qi)
+    if len(g) != counts.sum() or len(qi) != len(g) or (counts < 0).any():
+        raise ValueError("pixels, depths and counts disagree")
+    idx = g - np.repeat(off, counts)
+    if len(idx) and ((idx < 0).any() or (idx >= np.repeat(area, counts)).any()):
+        raise ValueError("a pixel outside its box")
+    return VisibleGt(boxes, np.concatenate([[0], np.cumsum(counts)]), idx, None, qi)
 
 
 class GtCache:
@@ -110,7 +107,7 @@ class GtCache:
             with np.load(path, allow_pickle=False) as z:
                 if str(z["key"]) != key:
                     raise ValueError("stale")
-                out = {k: z[k] for k in ("boxes", "counts", "mask", "qi")}
+                out = {k: z[k] for k in ("boxes", "counts", "pixels", "qi")}
         except Exception:  # unreadable, truncated or stale: computed again (and rewritten)
             self.misses += 1
             return None

@@ -374,12 +374,12 @@ class VisibleGt:
     V_g = {d_g > 0 and (d_g - d_test <= delta or d_test = 0)} — a function of the dataset alone, so it
     can be kept between scorings. ``boxes`` (B,4) int64: the footprint boxes [v0, v1) x [u0, u1)
     (:meth:`DepthRenderer.footprints`); ``start`` (B+1,): pose j's pixels are [start[j],
-    start[j+1]); ``idx`` int64: each V_g pixel's index in its box (row-major); ``dist`` float64:
-    d_g there (the distance from the camera centre); ``qi`` uint16: the depth-buffer value d_g
-    came from (d_g is the depth of ``qi`` times the ray's norm: :meth:`from_stored`)."""
+    start[j+1]); ``idx`` int64: each V_g pixel's index in its box (row-major); ``depth`` float32:
+    the render's depth there (d_g is it times the pixel's ray norm, which the estimate's render of
+    the same pixel has); ``qi`` uint16: the depth-buffer value it came from (:meth:`from_stored`)."""
 
-    def __init__(self, boxes, start, idx, dist, qi):
-        self.boxes, self.start, self.idx, self.dist, self.qi = boxes, start, idx, dist, qi
+    def __init__(self, boxes, start, idx, depth, qi):
+        self.boxes, self.start, self.idx, self.depth, self.qi = boxes, start, idx, depth, qi
 
     def __len__(self) -> int:
         return len(self.boxes)
@@ -391,45 +391,34 @@ class VisibleGt:
     def take(self, sel) -> "VisibleGt":
         """The poses ``sel`` (indices, repeats allowed), in that order."""
         sel = np.asarray(sel, np.int64)
+        if len(sel) == len(self) and np.array_equal(sel, np.arange(len(self))):
+            return self
         cnt = self.counts[sel]
         pix = _run_offsets(self.start[sel], cnt)
-        return VisibleGt(self.boxes[sel], np.concatenate([[0], np.cumsum(cnt)]), self.idx[pix],
-                         None if self.dist is None else self.dist[pix], self.qi[pix])
+        return VisibleGt(self.boxes[sel], np.concatenate([[0], np.cumsum(cnt)]), self.idx.take(pix),
+                         None if self.depth is None else self.depth.take(pix), self.qi.take(pix))
 
     @staticmethod
     def concatenate(parts: list["VisibleGt"]) -> "VisibleGt":
         if not parts:
             z = np.zeros(0, np.int64)
-            return VisibleGt(np.zeros((0, 4), np.int64), np.zeros(1, np.int64), z, np.zeros(0), np.zeros(0, np.uint16))
+            return VisibleGt(np.zeros((0, 4), np.int64), np.zeros(1, np.int64), z, np.zeros(0, np.float32),
+                             np.zeros(0, np.uint16))
+        if len(parts) == 1:
+            return parts[0]
         cnt = np.concatenate([p.counts for p in parts])
         return VisibleGt(np.concatenate([p.boxes for p in parts]), np.concatenate([[0], np.cumsum(cnt)]),
-                         np.concatenate([p.idx for p in parts]), np.concatenate([p.dist for p in parts]),
+                         np.concatenate([p.idx for p in parts]), np.concatenate([p.depth for p in parts]),
                          np.concatenate([p.qi for p in parts]))
 
     @staticmethod
-    def from_stored(renderer, R, t, Ks, boxes, start, idx, qi, width: int, height: int) -> "VisibleGt":
-        """The VisibleGt of poses (R, t, Ks) from its boxes, pixels and depth-buffer values alone
-        (as kept on disk): d_g recomputed exactly as when it was cast."""
+    def from_stored(renderer, R, t, boxes, start, idx, qi) -> "VisibleGt":
+        """The VisibleGt of poses (R, t) from its boxes, pixels and depth-buffer values alone (as
+        kept on disk): the depths recomputed exactly as when they were cast."""
         R, t = _poses(R, t)
-        Ks = np.ascontiguousarray(_Ks(Ks, len(R)))
-        boxes = np.asarray(boxes, np.int64).reshape(-1, 4)
         start = np.asarray(start, np.int64)
-        idx = np.asarray(idx, np.int64)
-        cnt = np.diff(start)
-        d = _stored_depths(renderer, R, t, start, qi)
-        pose = np.repeat(np.arange(len(R)), cnt)
-        bw = np.maximum(boxes[:, 3] - boxes[:, 2], 1)
-        ys, xs = np.divmod(idx, bw[pose])
-        v, u = ys + boxes[pose, 0], xs + boxes[pose, 2]
-        maps = _camera_maps(Ks, height, width)
-        nrm = np.empty(len(idx))
-        for j in np.flatnonzero(cnt):
-            a, b = int(start[j]), int(start[j + 1])
-            if maps[j] is not None:
-                nrm[a:b] = maps[j][2].take(v[a:b] * width + u[a:b])
-            else:
-                nrm[a:b] = ray_norms(Ks[j], u[a:b], v[a:b])[2]
-        return VisibleGt(boxes, start, idx, d * nrm, np.asarray(qi, np.uint16))
+        return VisibleGt(np.asarray(boxes, np.int64).reshape(-1, 4), start, np.asarray(idx, np.int64),
+                         _stored_depths(renderer, R, t, start, qi), np.asarray(qi, np.uint16))
 
 
 def _camera_maps(Ks: np.ndarray, h: int, w: int) -> list:
@@ -521,7 +510,7 @@ def visible_gt(renderer: "DepthRenderer", R_gt, t_gt, K, boxes, polys, rasters: 
         vg = (dg > 0) & (((dg.astype(np.float32) - dtg.astype(np.float32)) <= delta) | (dtg == 0))
         pose = np.repeat(np.arange(b - a), np.diff(ps))
         cnt = np.bincount(pose[vg], minlength=b - a)
-        parts.append(VisibleGt(bx, np.concatenate([[0], np.cumsum(cnt)]), local[vg], dg[vg],
+        parts.append(VisibleGt(bx, np.concatenate([[0], np.cumsum(cnt)]), local[vg], d[vg],
                                qi[vg].astype(np.uint16)))
     return VisibleGt.concatenate(parts)
 
@@ -586,34 +575,44 @@ def _vsd_est(renderer, Re, te, Ks, maps, be, pe, gt: VisibleGt, rasters: Rasters
     """VSD (n,T) of n estimates against their ground truths' V_g (``gt``, one per estimate)."""
     n = len(Re)
     bg = gt.boxes
-    # V_g and d_g on each estimate's raster
-    ras = Rasters(be, bg)
+    # V_g and its depths on the ground truths' box rasters
+    gr = Rasters(bg)
     cg = gt.counts
-    pg = np.repeat(np.arange(n), cg)
-    gy, gx = np.divmod(gt.idx, (bg[:, 3] - bg[:, 2])[pg])
-    ci = (gy + (bg[:, 0] - ras.v0)[pg]) * ras.w[pg] + gx + (bg[:, 2] - ras.u0 + ras.off)[pg]
-    vg_c = np.zeros(ras.total, bool)
-    vg_c[ci] = True
-    dg_c = np.zeros(ras.total, np.float64)
-    dg_c[ci] = gt.dist
+    gi = np.repeat(gr.off, cg) + gt.idx
+    vg_c = np.zeros(gr.total, bool)
+    vg_c[gi] = True
+    dg_c = np.zeros(gr.total, np.float32)
+    dg_c[gi] = gt.depth
     # the estimates' renders
     rp, rv, rc, rl = _spans(pe, be)
     d, _, nrm, ps = _render(renderer, Re, te, Ks, maps, rp, rv, rc, rl, w_img)
-    ce = ras.index(rp, rv, rc, rl)
     de = d * nrm
     dte = rasters.depth.take(rasters.index(sel[rp], rv, rc, rl)) * nrm
+    # each span's part inside its ground truth's box: there V_g and d_g are looked up
+    rs = np.cumsum(rl) - rl
+    gb = bg[rp]
+    c0 = np.maximum(rc, gb[:, 2])
+    c1 = np.minimum(rc + rl, gb[:, 3])
+    ln = np.where((rv >= gb[:, 0]) & (rv < gb[:, 1]), np.maximum(c1 - c0, 0), 0)
+    at = _run_offsets(rs + c0 - rc, ln)  # pixels of the estimate's render
+    src = _run_offsets(gr.off[rp] + (rv - gb[:, 0]) * gr.w[rp] + (c0 - gb[:, 2]), ln)  # on the rasters
+    vge = np.zeros(len(d), bool)
+    vge[at] = vg_c.take(src)
     pei = np.repeat(np.arange(n), np.diff(ps))
-    vge = vg_c[ce]
     hit = de > 0
     ve = hit & ((((de.astype(np.float32) - dte.astype(np.float32)) <= delta) | (dte == 0)) | vge)
     inter = ve & vge
     n_ve = np.bincount(pei[ve], minlength=n)
     n_inter = np.bincount(pei[inter], minlength=n)
     n_union = cg + n_ve - n_inter
-    dist = np.abs(dg_c[ce[inter]] - de[inter]) / diameter
+    dg = np.zeros(len(d), np.float32)
+    dg[at] = dg_c.take(src)
+    ii = np.flatnonzero(inter)
+    nr = nrm.take(ii)
+    dist = np.abs(dg.take(ii) * nr - de.take(ii)) / diameter  # d_g = its depth times the same ray's norm
     k = np.searchsorted(taus, dist, side="right")  # the taus with dist >= tau: the first k
     T = len(taus)
-    hist = np.bincount(pei[inter] * (T + 1) + k, minlength=n * (T + 1)).reshape(n, T + 1)
+    hist = np.bincount(pei.take(ii) * (T + 1) + k, minlength=n * (T + 1)).reshape(n, T + 1)
     cost = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (n,T): #{dist >= tau_i}
     with np.errstate(divide="ignore", invalid="ignore"):
         e = (cost + (n_union - n_inter)[:, None]) / n_union[:, None]
