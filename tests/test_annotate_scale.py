@@ -7,7 +7,9 @@ Sessions: multi/08 at 160x120, 2 arm positions x 4 steps of 30 deg, two noise se
 is relabelled multi/09 in its session.json (the scene id only names the scene: annotate reads
 the objects from session.json), a copy of it relabelled multi/10 without arm 0's opaque depth
 fails in its register stage. The label gate is off ([label] gate = false) and the place stage's
-fit gate loose (a pixel here is ~4 mm on the objects) so that every frame is written and
+fit gate loose (a pixel here is ~4 mm on the objects), and a cluster of 150 points an object
+(its smallest object fuses to ~320 points from these 8 frames, at the default 300's edge: the
+depth scale measured on a perfect sensor, 1.0019 applied, took it under), so that every frame is written and
 compared, whatever the accuracy of sessions this small: these tests are about where the work
 runs (the gates and the accuracy are tested in test_annotate_pipeline.py and
 test_annotate_lab.py)."""
@@ -33,7 +35,7 @@ from tdof20.formats import read_json
 from tests.cli_support import run_here
 
 EXE = [sys.executable, "-m", "tdof20.cli"]
-TOML = "[label]\ngate = false\nchunk = 3\n[place]\nmin_fitness = 0.05\nmax_score_mm = 8.0\n[qa]\nsample = 1\nevaluate = false\n"
+TOML = "[label]\ngate = false\nchunk = 3\n[reconstruct]\nmin_cluster_points = 150\n[place]\nmin_fitness = 0.05\nmax_score_mm = 8.0\n[qa]\nsample = 1\nevaluate = false\n"
 LABEL_DIRS = ("rgb", "depth", "depth_opaque", "depth_restored", "mask", "mask_visib", "models")
 LABEL_FILES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "scene_info.json")
 
@@ -187,3 +189,22 @@ def test_alone_side_by_side_and_on_ray_give_the_same_labels(sessions, local_run,
 
     assert not ray.is_initialized()   # the run shut down the instance it started
     assert os.environ.get("RAY_ADDRESS") is None
+
+
+def test_an_object_dropped_as_noise_is_named_with_its_points(sessions, tmp_path):
+    """An object the reconstruction keeps too few points of (here: reconstruct.min_cluster_points
+    raised to 400 over the smallest object's ~320) is said as such, with the cluster's size and the
+    option to lower, not as objects touching."""
+    import dataclasses
+
+    s = sessions
+    cfg = load_annotate_config(s["config"])
+    cfg = dataclasses.replace(cfg, reconstruct=dataclasses.replace(cfg.reconstruct, min_cluster_points=400))
+    with pytest.raises(TdofError) as e:
+        annotate(s["raws"]["multi/08"], tmp_path / "out", s["models"], cfg=cfg.with_label_options(workers=1),
+                 progress=False)
+    msg = str(e.value)
+    assert "reconstruction.json" in msg and "4 objects in session.json" in msg and "3 clusters" in msg
+    assert "reconstruct.min_cluster_points = 400" in msg and "touching" not in msg
+    small = read_json(tmp_path / "out" / "work" / "reconstruction" / "reconstruction.json")["dropped_clusters"]
+    assert 133 <= small[0] < 400 and f"had {small[0]} points" in msg

@@ -133,7 +133,7 @@ def write_reconstruction(d: Path, rec: Reconstruction, axis_point: np.ndarray, a
             "axis_point": [float(x) for x in axis_point], "axis_dir": [float(x) for x in axis_dir],
             "frames_fused": frames_fused, "fuse_max_frames": fuse_max_frames, "n_points": int(len(rec.points)),
             "points": "scene_points.ply", "mesh": "scene_mesh.ply" if (d / "scene_mesh.ply").exists() else None,
-            "clusters": clusters, "problems": problems,
+            "clusters": clusters, "dropped_clusters": list(rec.dropped), "problems": problems,
             "viewpoints": [[float(x) for x in v] for v in viewpoints]}
     write_json(d / "reconstruction.json", meta)
     return meta

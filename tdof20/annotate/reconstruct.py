@@ -97,6 +97,8 @@ class Reconstruction:
     clusters: list[np.ndarray] = field(default_factory=list)  # (Ni,3) object points, largest first (then by centroid)
     mesh: object = None               # open3d TriangleMesh of the fused scene
     cluster_normals: list[np.ndarray] = field(default_factory=list)  # (Ni,3) unit normals of the clusters
+    dropped: list[int] = field(default_factory=list)  # the point counts of the DBSCAN clusters under
+    # min_cluster_points (largest first, at most 8): what to look at when an object is missing
     # (the TSDF's gradient: oriented towards the free space the cameras saw, each wall of a thin
     # vessel its own way — what :func:`tdof20.annotate.modelbuild.build_model_from_cluster` needs)
 
@@ -229,7 +231,7 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
     if len(cand) and kept and cfg.static_max_agree > 0:
         turns = turning_points(cand, kept, camera, cfg)
         cand, cand_n = cand[turns], cand_n[turns]
-    clusters = []
+    clusters, dropped = [], []
     if len(cand):
         c = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cand))
         labels = np.asarray(c.cluster_dbscan(cfg.cluster_eps_mm, cfg.cluster_min_points))
@@ -237,9 +239,12 @@ def reconstruct(frames: list[tuple[np.ndarray, np.ndarray]], camera: PinholeCame
             sel = labels == lab
             if sel.sum() >= cfg.min_cluster_points:
                 clusters.append((cand[sel], cand_n[sel]))  # (in the canonical order of cand)
+            else:
+                dropped.append(int(sel.sum()))
         clusters = join_floating(clusters, plane, cfg)
         clusters.sort(key=lambda cn: (-len(cn[0]), *cn[0].mean(axis=0).tolist()))
-    return Reconstruction(pts, plane, [c for c, _ in clusters], mesh, [n for _, n in clusters])
+    return Reconstruction(pts, plane, [c for c, _ in clusters], mesh, [n for _, n in clusters],
+                          sorted(dropped, reverse=True)[:8])
 
 
 def join_floating(clusters: list[tuple[np.ndarray, np.ndarray]], plane: np.ndarray,

@@ -328,9 +328,14 @@ def _model(ctx: StageContext) -> dict:
     if ctx.models_dir is not None:
         models = load_meshes(ctx.models_dir, sorted(set(objects)))
         if len(clusters) < len(objects):
+            small = meta.get("dropped_clusters") or []
+            mcp = ctx.cfg.reconstruct.min_cluster_points
+            why = (f"the largest of {len(small)} clusters dropped as noise had {small[0]} points, under "
+                   f"reconstruct.min_cluster_points = {mcp} (few frames or small images? lower it)"
+                   if small and small[0] >= mcp // 3 else
+                   "objects touching? try a smaller reconstruct.cluster_eps_mm")
             raise TdofError(f"{len(objects)} objects in session.json but the reconstruction split the scene into "
-                            f"{len(clusters)} clusters (objects touching? try a smaller reconstruct.cluster_eps_mm)",
-                            ctx.rec_dir / "reconstruction.json")
+                            f"{len(clusters)} clusters ({why})", ctx.rec_dir / "reconstruction.json")
         matched, unused = match_models(models, objects, clusters, plane, ctx.cfg, ctx.progress)
         fits = {"format": "tdof20-fits", "source": "models", "models_dir": str(Path(ctx.models_dir).resolve()),
                 "models_fingerprint": dir_hash(Path(ctx.models_dir)), "objects": matched,
