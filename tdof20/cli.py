@@ -491,6 +491,17 @@ def _print_stats(s: dict) -> None:
     for oid, n in s["per_object"].items():
         t.add_row(str(oid), names.get(oid, names.get(str(oid), f"obj_{int(oid):06d}")), str(n))
     out_console.print(t)
+    noise = s.get("label_noise") or {}
+    if noise:
+        t = Table(title="label-noise floor per object (95 % bounds of scene_gt_uncertainty.json: median / 95th pct)")
+        for c in ("id", "name", "labels bounded", "translation (mm)", "rotation (deg)", "surface (mm)"):
+            t.add_column(c, justify="left" if c == "name" else "right")
+        for oid, f in noise.items():
+            cells = [f"{f[k]['median']:.2f} / {f[k]['p95']:.2f}" if f.get(k) else "not recorded"
+                     for k in ("trans_mm", "rot_deg", "surface_mm")]
+            t.add_row(str(oid), names.get(oid, names.get(str(oid), f"obj_{int(oid):06d}")),
+                      f"{f['bounded']} / {f['labels']}", *cells)
+        out_console.print(t)
 
 
 # ----------------------------------------------------------------------------------- annotate

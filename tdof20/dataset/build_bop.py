@@ -22,17 +22,19 @@ from tdof20.dataset.stats import stats
 from tdof20.errors import TdofError
 from tdof20.formats import read_json, write_json
 from tdof20.formats.bop import dumps_bop_json
+from tdof20.formats.bop_uncertainty import SCENE_GT_UNCERTAINTY
 from tdof20.formats.io import atomic_write_bytes
 from tdof20.objects import get_object
 from tdof20.progress import progress
 
 BOP_PARTS = {"train": "train", "test": "test"}  # protocol part -> BOP split folder
-_BOP_SCENE_JSON = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
+_BOP_SCENE_JSON = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json", SCENE_GT_UNCERTAINTY)  # cut per image
 
 
 def _bop_scene_part(src: Path, dst: Path, im_ids: list[int]) -> None:
     """Write the frames ``im_ids`` of the scene ``src`` as the BOP scene ``dst`` (whole: a copy
-    beside it, then renames): the three JSON files cut to those frames, and every per-image file
+    beside it, then renames): the JSON label files (scene_gt_uncertainty.json too, when the scene
+    has one) cut to those frames, and every per-image file
     (rgb, depth, depth_* and the masks) of them."""
     keep = {str(i) for i in im_ids}
     tmp, old = dst.with_name(f".{dst.name}.tmp"), dst.with_name(f".{dst.name}.old")

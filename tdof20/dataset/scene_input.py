@@ -21,6 +21,7 @@ from tdof20.dataset.splits import scene_name, scene_number
 from tdof20.errors import TdofError
 from tdof20.formats import check_output_dir, check_scene_images, read_bytes, read_json, read_models_info, read_scene
 from tdof20.formats.bop import SCENE_CAMERA, SCENE_GT, median_distance_if_metres
+from tdof20.formats.bop_uncertainty import read_uncertainty
 from tdof20.formats.session import MAX_STEPS
 
 MAX_ARMS = 64  # arm positions of a scene (TDoF20: 4); bounds a typo before the split rules loop over them
@@ -85,7 +86,9 @@ def read_scenes(dirs: list[Path]) -> tuple[dict[int, tuple[dict, Path]], dict[in
     """Read and check the annotated scene folders: ({scene id: (scene_info, folder)}, {id: (height,
     width)}, {id: BopScene}). Each scene's JSON files agree, every image is a PNG of its kind, and
     its labels pass check_labels against its own models (a scene without models/ is refused
-    later, by the models' plan (plan_models)). A scene given twice is refused."""
+    later, by the models' plan (plan_models)), and its scene_gt_uncertainty.json, when it has one,
+    matches its scene_gt.json (:func:`tdof20.formats.bop_uncertainty.read_uncertainty`). A scene
+    given twice is refused."""
     new: dict[int, tuple[dict, Path]] = {}
     sizes: dict[int, tuple[int, int]] = {}
     scenes = {}
@@ -96,6 +99,7 @@ def read_scenes(dirs: list[Path]) -> tuple[dict[int, tuple[dict, Path]], dict[in
             raise TdofError(f"scene {info['scene_id']} is given twice ({new[sid][1]} and {d})")
         scenes[sid] = read_scene(d)
         sizes[sid] = check_scene_images(scenes[sid])
+        read_uncertainty(d, scenes[sid].gt)
         if (d / "models" / "models_info.json").exists():
             check_labels(d, scenes[sid], read_models_info(d / "models"))
         new[sid] = (info, d)

@@ -2,20 +2,23 @@
 packed into one HDF5 shard (:mod:`tdof20.dataset.shards`).
 
     split_images(ROOT, "simple", "test")      # [(scene_id, im_id), ...]
-    stats(ROOT)                               # counts per split part, scene and object
+    stats(ROOT)                               # counts per split part, scene and object; label-noise floor
     pack(ROOT, "simple", "train", OUT.h5)     # the part's images in one shard
 """
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, defaultdict
 from pathlib import Path
+
+import numpy as np
 
 from tdof20.dataset.layouts import open_dataset
 from tdof20.dataset.layouts.base import PARTS
 from tdof20.dataset.shards import pack_shard
 from tdof20.errors import TdofError
 from tdof20.formats import check_output_file
+from tdof20.formats.bop_uncertainty import BOUNDS, read_uncertainty
 from tdof20.progress import progress
 
 
@@ -32,11 +35,17 @@ def stats(root: str | Path) -> dict:
     Both layouts: "layout", "scenes", "images", "per_scene" {name: images}, "per_object" {obj_id:
     instances}, "objects" {obj_id: name}, "splits". tdof20: "splits" {"simple_train": n, ...,
     "simple_targets": n}; BOP: "splits" {"<folder>": images, ..., "targets": n} and "split_folders"
-    {"<folder>": {"scenes", "images", "test_images", "targets"}}."""
+    {"<folder>": {"scenes", "images", "test_images", "targets"}}.
+
+    "label_noise" {obj_id: {"labels", "bounded", "trans_mm", "rot_deg", "surface_mm"}}: the
+    label-noise floor of each object from the scenes' scene_gt_uncertainty.json (95 % bounds on
+    each label's own error): of its ``labels`` instances, ``bounded`` carry a bound, and each
+    bound's {"median", "p95"} over them (None where none does: not recorded)."""
     ds = open_dataset(root)
     out: dict = {"layout": ds.layout, "scenes": 0, "images": 0, "splits": {}, "per_scene": {}, "per_object": {},
                  "objects": {o: ds.object_name(o) for o in ds.obj_ids}}
     obj_count: Counter = Counter()
+    bounds: dict[int, dict[str, list[float]]] = defaultdict(lambda: {k: [] for k in BOUNDS})
     for folder in ds.stats_folders():
         n_folder = 0
         ids = ds.scene_ids(folder)
@@ -46,6 +55,11 @@ def stats(root: str | Path) -> dict:
             n_folder += len(sc.im_ids())
             for insts in sc.gt.values():
                 obj_count.update(int(g["obj_id"]) for g in insts)
+            unc = read_uncertainty(ds.scene_dir(sid, folder), sc.gt) if sc.gt else None
+            for entries in (unc or {}).values():
+                for e in entries:
+                    for k in BOUNDS:
+                        bounds[int(e["obj_id"])][k].append(float(e[k]))
         out["scenes"] += len(ids)
         out["images"] += n_folder
         if folder is not None:
@@ -55,7 +69,20 @@ def stats(root: str | Path) -> dict:
                 "targets": n_targets}
             out["splits"][folder] = n_folder
     out["per_object"] = {int(k): v for k, v in sorted(obj_count.items())}
+    out["label_noise"] = {o: label_floor(n, bounds.get(o)) for o, n in out["per_object"].items()}
     out["splits"].update(ds.split_counts())
+    return out
+
+
+def label_floor(n_labels: int, bounds: dict[str, list[float]] | None) -> dict:
+    """One object's label-noise floor: {"labels": n_labels, "bounded": how many carry a bound, and
+    per bound (rot_deg, trans_mm, surface_mm) {"median", "p95"} over them, or None: not recorded}."""
+    n = len(bounds[BOUNDS[0]]) if bounds else 0
+    out: dict = {"labels": int(n_labels), "bounded": n}
+    for k in ("trans_mm", "rot_deg", "surface_mm"):
+        v = np.asarray(bounds[k], np.float64) if n else None
+        out[k] = None if v is None else {"median": round(float(np.median(v)), 4),
+                                         "p95": round(float(np.percentile(v, 95)), 4)}
     return out
 
 
@@ -82,4 +109,4 @@ def pack(root: str | Path, split: str, part: str, out: str | Path, show_progress
                           models_dir=ds.models_dir, progress_bar=lambda: bar.advance(task), split=split)
 
 
-__all__ = ["pack", "split_images", "stats"]
+__all__ = ["label_floor", "pack", "split_images", "stats"]

@@ -35,7 +35,7 @@ from tdof20.server import auth, submissions as subs
 from tdof20.server.config import ServerConfig
 from tdof20.server.cells import dataset_version, scorer_version
 from tdof20.server.db import init_db, make_engine, versions_behind
-from tdof20.server.facts import DatasetFacts
+from tdof20.server.facts import FLOOR_MIN_LABELS, DatasetFacts
 from tdof20.server.figures import figures
 from tdof20.server.publish import DERIVABLE, derivable, hidden_frames
 from tdof20.server.store import FULL, FULL_ERRNOS, Refused, Store
@@ -448,7 +448,9 @@ def create_app(cfg: ServerConfig) -> ASGIApp:
     def submission_page(request: Request, uid: str):
         s = subs.get(engine, uid, page_user(request), current())
         return page(request, "submission.html", {"s": s, "plots": plots_of(s),
-                                                 "held": subs.held_parts(engine).get(s["split"])})
+                                                 "held": subs.held_parts(engine).get(s["split"]),
+                                                 "objects": facts.object_facts(s["split"], s.get("part") or "test"),
+                                                 "floor_min": FLOOR_MIN_LABELS})
 
     @app.post("/s/{uid}/withdraw", include_in_schema=False)
     def withdraw_page(request: Request, uid: str, csrf: str = Form("")):

@@ -5,7 +5,13 @@ check names the test images' median: a label, so the server checks before the sc
 each protocol's validation part: its targets (the dataset's own cache ROOT/.cache/val_targets_{split}.json
 where it holds any, else computed by :func:`tdof20.dataset.validation.val_targets`) less every image
 that is a test image of any protocol (TDoF20's simple test images are hard train images): the
-labels of what is left are in the public release, so their per-image errors may be shown."""
+labels of what is left are in the public release, so their per-image errors may be shown.
+
+Per object, the ADD(S) threshold (10 % of the diameter, models_eval/'s where the dataset has one,
+as the scorer) and the dataset's label-noise floor beside it: the median ``trans_mm`` bound
+(scene_gt_uncertainty.json) over the object's labels in each protocol's test part (and
+validation part), an aggregate of at least :data:`FLOOR_MIN_LABELS` bounded labels; never a
+per-image value."""
 
 from __future__ import annotations
 
@@ -17,10 +23,14 @@ from tdof20.dataset.layouts import open_dataset
 from tdof20.dataset.results import Results, check_against_dataset, read_results
 from tdof20.dataset.validation import val_targets
 from tdof20.errors import TdofError
+from tdof20.formats.bop_models import read_models_info
+from tdof20.formats.bop_uncertainty import SCENE_GT_UNCERTAINTY, read_uncertainty
 from tdof20.formats.io import read_json
+from tdof20.scoring.evaluation import ADD_THRESHOLD
 from tdof20.server.publish import hidden_frames
 
 PARTS = ("test", "val")
+FLOOR_MIN_LABELS = 5  # fewer bounded labels of an object in a part: no floor shown (a median of one is its value)
 
 
 def validation_targets(root: str | Path, split: str, hidden: dict[int, set[int]] | None = None) -> list[dict]:
@@ -35,6 +45,26 @@ def validation_targets(root: str | Path, split: str, hidden: dict[int, set[int]]
         except TdofError:  # a layout without turntable arcs: no validation part
             targets = []
     return [t for t in targets if int(t["im_id"]) not in hidden.get(int(t["scene_id"]), set())]
+
+
+def label_floors(ds, frames, folder: str | None = None) -> dict[int, dict]:
+    """{obj_id: {"bounded": n, "floor_mm": median trans_mm bound or None}} over the labels of the
+    images ``frames`` [(scene_id, im_id)] (scenes without scene_gt_uncertainty.json: no bounds);
+    ``floor_mm`` is None under :data:`FLOOR_MIN_LABELS` bounded labels."""
+    want: dict[int, set[int]] = {}
+    for sid, im in frames:
+        want.setdefault(int(sid), set()).add(int(im))
+    vals: dict[int, list[float]] = {}
+    for sid, ims in sorted(want.items()):
+        d = ds.scene_dir(sid, folder)
+        if not (d / SCENE_GT_UNCERTAINTY).is_file():
+            continue
+        unc = read_uncertainty(d, ds.scene(sid, folder).gt) or {}
+        for im in ims:
+            for e in unc.get(im, []):
+                vals.setdefault(int(e["obj_id"]), []).append(float(e["trans_mm"]))
+    return {o: {"bounded": len(v), "floor_mm": float(np.median(v)) if len(v) >= FLOOR_MIN_LABELS else None}
+            for o, v in vals.items()}
 
 
 class DatasetFacts:
@@ -57,6 +87,21 @@ class DatasetFacts:
         self.train_distance_mm = float(np.median(dists)) if dists else None
         self.val_targets = {s: validation_targets(self.root, s, hidden) for s in self.splits}
         self.val_images = {s: {(int(t["scene_id"]), int(t["im_id"])) for t in tg} for s, tg in self.val_targets.items()}
+        eval_dir = ds.models_eval_dir
+        infos = read_models_info(eval_dir) if eval_dir is not None else ds.models_info
+        thresholds = {int(o): ADD_THRESHOLD * float(e["diameter"]) for o, e in infos.items()}
+        self.objects: dict[tuple[str, str], dict[str, dict]] = {}
+        for s in self.splits:
+            folder = ds.scene_folder(s)
+            for part, frames in (("test", ds.frames(s, "test")), ("val", sorted(self.val_images[s]))):
+                floors = label_floors(ds, frames, folder)
+                self.objects[(s, part)] = {str(o): {"threshold_mm": thr, **floors.get(o, {"bounded": 0, "floor_mm": None})}
+                                           for o, thr in sorted(thresholds.items())}
+
+    def object_facts(self, split: str, part: str = "test") -> dict[str, dict]:
+        """{str(obj_id): {"threshold_mm", "bounded", "floor_mm"}} of ``split``'s ``part``: each object's
+        ADD(S) threshold and label-noise floor (None: not recorded, or too few bounded labels)."""
+        return self.objects.get((split, part), {})
 
     def parts(self, split: str) -> tuple[str, ...]:
         """The parts of ``split`` a submission may be scored on."""
@@ -74,4 +119,4 @@ class DatasetFacts:
         return res
 
 
-__all__ = ["DatasetFacts", "PARTS", "validation_targets"]
+__all__ = ["DatasetFacts", "FLOOR_MIN_LABELS", "PARTS", "label_floors", "validation_targets"]
