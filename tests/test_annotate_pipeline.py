@@ -91,6 +91,46 @@ def test_multi_object_scene_matches_the_truth(multi):
         assert (out / "work" / f).exists(), f
 
 
+def test_every_label_carries_its_bounds_and_objects_stand_on_the_table(multi):
+    """scene_gt_uncertainty.json: keyed like scene_gt.json, an entry per label in its order with
+    its object's id, positive finite bounds that cover the truth's error for most labels and stay
+    informative (median within 3x the median true error + 1 mm); the QA report's table; every
+    upright object set down on the table (its lowest point on the plane)."""
+    out, raw = multi["out"], multi["raw"]
+    gt, tru = read_json(out / "scene_gt.json"), read_json(raw / "truth" / "scene_gt.json")
+    unc = read_json(out / "scene_gt_uncertainty.json")
+    info = read_json(out / "models" / "models_info.json")
+    assert unc.keys() == gt.keys()
+    err, bnd = [], []
+    for k, entries in gt.items():
+        assert [e["obj_id"] for e in unc[k]] == [e["obj_id"] for e in entries]
+        for e, b in zip(entries, unc[k]):
+            assert set(b) == {"obj_id", "rot_deg", "trans_mm", "surface_mm"}
+            assert all(np.isfinite(b[q]) and b[q] > 0 for q in ("rot_deg", "trans_mm", "surface_mm"))
+            t = next(x for x in tru[k] if x["obj_id"] == e["obj_id"])
+            mi = info[str(e["obj_id"])]
+            c = np.array([mi[f"min_{a}"] + mi[f"size_{a}"] / 2 for a in "xyz"])
+            pl, pt = (np.reshape(x["cam_R_m2c"], (3, 3)) @ c + np.reshape(x["cam_t_m2c"], 3) for x in (e, t))
+            err.append(float(np.linalg.norm(pl - pt)))
+            bnd.append(b["trans_mm"])
+    err, bnd = np.array(err), np.array(bnd)
+    assert np.mean(err <= bnd) >= 0.9, (np.median(err), np.median(bnd))
+    assert np.median(bnd) <= 3 * np.median(err) + 1.0
+    qa = read_json(out / "qa" / "qa.json")["label_bounds"]
+    assert sorted(int(o) for o in qa) == sorted({e["obj_id"] for v in gt.values() for e in v})
+    assert "Label error bounds (95 %)" in (out / "qa" / "report.html").read_text()
+    # set down onto the table: each upright placement's lowest model point on the plane
+    from tdof20.formats.bop_models import model_path, read_model_mesh
+
+    pl = read_json(out / "work" / "placements.json")
+    n, d = np.asarray(pl["plane"][:3]), pl["plane"][3]
+    for p in pl["placements"]:
+        assert p["contact_mm"] is not None
+        V, _ = read_model_mesh(model_path(out / "models", p["obj_id"]))
+        T = np.reshape(p["T_ref_model"], (4, 4))
+        assert abs(float(np.min((V @ T[:3, :3].T + T[:3, 3]) @ n + d)) / np.linalg.norm(n)) < 0.01
+
+
 def test_a_rerun_resumes_after_the_finished_stages(multi):
     first, second = multi["first"], multi["second"]
     assert [first["stages"][st]["status"] for st in STAGES] == ["ran"] * 3 + ["not requested"] * 3

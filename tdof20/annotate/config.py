@@ -24,6 +24,7 @@ from tdof20.annotate.models import ModelFitConfig
 from tdof20.annotate.modelbuild_config import ModelBuildConfig
 from tdof20.annotate.reconstruct import ReconstructionConfig
 from tdof20.annotate.registration_config import RegistrationConfig
+from tdof20.annotate.uncertainty import UncertaintyConfig
 from tdof20.config import check_ranges, config_from_data, load_config_file
 from tdof20.errors import TdofError
 
@@ -43,6 +44,8 @@ class PlaceConfig:
     fit_samples: int = 20000             # model surface samples of the final fit
     upright: bool = True                 # objects stand on the table: model z along the table normal
     upright_max_deg: float = 3.0         # ... when the fit's tilt is below this (else kept as fitted)
+    contact: bool = True                 # ... and set down onto the table (its lowest point on it) ...
+    contact_max_mm: float = 6.0          # ... when within this of it (refine_placement)
     min_fitness: float = 0.15            # quality gate of the final fit (fraction of cluster points
     max_score_mm: float = 3.0            # within the last ICP distance; truncated mean distance)
     # the twin check (tdof20.annotate.twins): the transparent phase's glass returns against the twin's pose
@@ -75,7 +78,7 @@ class PlaceConfig:
                                               "twin_min_points", "twin_max_ci95_mm", "twin_max_ci95_deg",
                                               "twin_max_mm", "twin_max_deg", "twin_within_mm", "twin_within_deg",
                                               "twin_min_ci95_mm", "twin_min_ci95_deg"),
-                     non_negative=("twin_margin_mm", "twin_min_height_mm"))
+                     non_negative=("twin_margin_mm", "twin_min_height_mm", "contact_max_mm"))
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,7 @@ class AnnotateConfig:
     place: PlaceConfig = field(default_factory=PlaceConfig)
     label: LabelConfig = field(default_factory=LabelConfig)
     qa: QAConfig = field(default_factory=QAConfig)
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     fuse_max_frames: int = 240           # at most this many usable opaque frames go into the TSDF,
                                          # spread evenly over each arm's turn (0 = all)
     fuse_crop: bool = True               # fuse only the turntable volume (depth outside it dropped
@@ -127,7 +131,7 @@ class AnnotateConfig:
             k: getattr(self, k) for k in _SCALARS}
 
 
-_SECTIONS = ("register", "reconstruct", "fit", "build", "place", "label", "qa")
+_SECTIONS = ("register", "reconstruct", "fit", "build", "place", "label", "qa", "uncertainty")
 _SCALARS = ("fuse_max_frames", "fuse_crop", "fuse_max_height_mm")
 
 

@@ -135,7 +135,8 @@ def _summary(ctx: StageContext, state: StateFile, run: dict, warnings: list[str]
     if ctx.label_file.exists():
         lab = read_json(ctx.label_file)
         s["label"] = {k: lab.get(k) for k in ("frames", "labelled", "already_done", "skipped", "removed", "no_opaque",
-                                              "seconds", "frames_per_s", "method", "executor", "workers")}
+                                              "seconds", "frames_per_s", "method", "executor", "workers",
+                                              "uncertainty")}
     if ctx.eval_file.exists():
         ev = read_json(ctx.eval_file)
         s["evaluation"] = {"all": ev.get("all"), "objects": ev.get("objects"),
@@ -320,6 +321,11 @@ def summary_text(summary: dict) -> str:
     if lab:
         lines.append(f"  labelled {lab.get('labelled', 0) + lab.get('already_done', 0)} of {lab.get('frames')} frames"
                      f" ({len(flagged)} flagged by registration, {len(lab.get('skipped') or [])} skipped in all)")
+        ub = lab.get("uncertainty") or {}
+        if ub:
+            lines.append("  label bounds (95 %, median per object): " + ", ".join(
+                f"{o}: {b['trans_mm_median']:.2f} mm / {b['rot_deg_median']:.2f} deg" for o, b in sorted(
+                    ub.items(), key=lambda kv: int(kv[0]))) + " (scene_gt_uncertainty.json)")
         for sk in (lab.get("skipped") or [])[:10]:
             lines.append(f"    skipped arm {sk['arm']} step {sk['step']}: {sk['reason']}")
         if len(lab.get("skipped") or []) > 10:

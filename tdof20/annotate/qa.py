@@ -256,13 +256,16 @@ class _Points:
 def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = (), sample: int = 12,
              out_dir: str | Path | None = None, progress: bool = True, evaluation: dict | None = None,
              n_points: int = 600, session_dir: str | Path | None = None,
-             failed_objects: Iterable[dict] = (), twins: Iterable[dict] = ()) -> Path:
+             failed_objects: Iterable[dict] = (), twins: Iterable[dict] = (),
+             uncertainty: dict | None = None) -> Path:
     """Write the QA outputs of an annotated scene (see the module docstring); returns the path of
     ``report.html``. ``registration``: a RegistrationResult or the path of its JSON (its flagged
     frames join ``flagged``); ``flagged``: [(arm, step, reason) | (im_id, reason) | im_id];
     ``evaluation``: the dict of :func:`tdof20.annotate.evaluate.evaluate_scene`; ``session_dir``:
     where to find colour images of frames the scene lacks (default: scene_info's source_session);
-    ``twins``: the place stage's twin check per object ({obj_id, action, note, offset_mm, ...})."""
+    ``twins``: the place stage's twin check per object ({obj_id, action, note, offset_mm, ...});
+    ``uncertainty``: the labels' 95 % error bounds per object (label.json's "uncertainty":
+    :func:`tdof20.annotate.uncertainty.per_object`)."""
     scene = _open_scene(scene_dir)
     out = Path(out_dir) if out_dir is not None else scene.path / "qa"
     info = read_json(scene.path / "scene_info.json") if (scene.path / "scene_info.json").exists() else {}
@@ -372,6 +375,8 @@ def write_qa(scene_dir: str | Path, registration=None, flagged: Iterable[Any] = 
         "failed_objects": [dict(f) for f in failed_objects],
         # the twin check: where each transparent object stands against its opaque twin
         "twins": [dict(t) for t in twins],
+        # the labels' 95 % error bounds per object (scene_gt_uncertainty.json): the label-noise floor
+        "label_bounds": {str(k): dict(v) for k, v in (uncertainty or {}).items()},
     }
     write_json(out / "qa.json", summary)
     report = out / "report.html"
@@ -455,6 +460,15 @@ def _html(s: dict, reg, evaluation: dict | None) -> str:
                         [[_n(t["obj_id"]), _e(t["action"]), _n(t.get("offset_mm")), _n(t.get("ci95_mm")),
                           _n(t.get("turn_deg")), _n(t.get("ci95_deg")), _n(t.get("points")), _e(t["note"])]
                          for t in tw], left=[1, 7], bad=[i for i, t in enumerate(tw) if t["action"] == "flagged"]))
+    if s.get("label_bounds"):
+        p.append("<h2>Label error bounds (95 %)</h2><p>how far each label may be from the truth, per label in "
+                 "scene_gt_uncertainty.json (depth scale, twin placement, model fit, frame motion: "
+                 "docs/annotate.md); median and 95th percentile over the object's labels</p>")
+        lb = s["label_bounds"]
+        p.append(_table(["obj_id", "labels", "translation (mm)", "p95", "rotation (deg)", "p95", "surface (mm)", "p95"],
+                        [[_n(int(o)), _n(b["n"]), _n(b["trans_mm_median"]), _n(b["trans_mm_p95"]),
+                          _n(b["rot_deg_median"]), _n(b["rot_deg_p95"]), _n(b["surface_mm_median"]),
+                          _n(b["surface_mm_p95"])] for o, b in sorted(lb.items(), key=lambda kv: int(kv[0]))]))
     p.append("<h2>Flagged frames</h2>")
     if s["flagged"]:
         files = {o["im_id"]: o["file"] for o in s["overlays"]}

@@ -50,6 +50,7 @@ from tdof20.annotate.reconstruct import reconstruct
 from tdof20.annotate.registration import RegistrationResult, register_session
 from tdof20.annotate.state import WORK, count_files, dir_hash, sha_file, sha_obj
 from tdof20.annotate.twins import check_twins, twin_decision
+from tdof20.annotate.uncertainty import FILE as UNCERTAINTY_FILE, write_scene_bounds
 from tdof20.errors import TdofError
 from tdof20.formats import RawSession, read_json, write_json
 from tdof20.progress import progress as _progress
@@ -403,7 +404,7 @@ def _place(ctx: StageContext) -> dict:
         meshes = load_meshes(md, obj_ids)
         try:
             placements = place_models(fits["objects"], meshes, clusters, [c["file"] for c in meta["clusters"]], up,
-                                      ctx.cfg, ctx.fits_file, failed)
+                                      ctx.cfg, ctx.fits_file, failed, plane)
         except TdofError:
             if not (failed and corr.placed):   # every object failed, and the reviewer placed none
                 raise
@@ -507,16 +508,24 @@ def _label(ctx: StageContext) -> dict:
     summary = label_scene(ctx.raw, ctx.out, T_ref_frames, [(int(p["obj_id"]), T_arr(p["T_ref_model"])) for p in pl],
                           models, ctx.cfg.label, skip=ctx.corrections().skip(reg.flagged_frames(), info.n_arms, info.steps),
                           progress=ctx.progress, reuse=reuse, depth_factor=1.0 / reg.depth_factor)
-    write_json(ctx.label_file, summary)
     if summary["labelled"] + summary["already_done"] == 0:
+        write_json(ctx.label_file, summary)
         first = "; ".join(sorted({s["reason"] for s in summary["skipped"]})[:3])
         raise TdofError(f"no frame could be labelled ({len(summary['skipped'])} skipped: {first})", ctx.label_file)
+    if ctx.cfg.uncertainty.write:  # every label's 95 % error bounds (tdof20.annotate.uncertainty)
+        summary["uncertainty"] = {str(o): v for o, v in write_scene_bounds(
+            ctx.out, pl, reg, ctx.cfg.uncertainty, ctx.cfg.place).items()}
+    else:
+        (ctx.out / UNCERTAINTY_FILE).unlink(missing_ok=True)
+    write_json(ctx.label_file, summary)
     return {k: summary[k] for k in ("labelled", "already_done", "frames_per_s")} | {"skipped": len(summary["skipped"])}
 
 
 def _label_outputs(ctx: StageContext) -> dict:
     out = {n: sha_file(ctx.require(ctx.out / n, "label"))
            for n in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json", "scene_info.json")}
+    if ctx.cfg.uncertainty.write:
+        out[UNCERTAINTY_FILE] = sha_file(ctx.require(ctx.out / UNCERTAINTY_FILE, "label"))
     out["label.json"] = sha_file(ctx.require(ctx.label_file, "label"))
     for sub in ("rgb", "depth", "depth_opaque", "depth_restored", "mask", "mask_visib"):
         out[sub] = count_files(ctx.out / sub)
@@ -526,7 +535,8 @@ def _label_outputs(ctx: StageContext) -> dict:
 LABEL = Stage(
     "label", needs=("register", "place"), run=_label,
     inputs=lambda ctx: {"cfg": {k: v for k, v in dataclasses.asdict(ctx.cfg.label).items()
-                                if k not in _LABEL_RUNTIME}, "verdicts": ctx.corrections().verdict_key()},
+                                if k not in _LABEL_RUNTIME}, "verdicts": ctx.corrections().verdict_key(),
+                    "uncertainty": dataclasses.asdict(ctx.cfg.uncertainty)},
     outputs=_label_outputs)
 
 
@@ -548,7 +558,8 @@ def _qa(ctx: StageContext) -> dict:
     pl = read_json(ctx.placements_file) if ctx.placements_file.exists() else {}
     kw = dict(registration=reg, sample=ctx.cfg.qa.sample, evaluation=evaluation, progress=ctx.progress,
               session_dir=ctx.raw, failed_objects=pl.get("failed", []),
-              twins=[{"obj_id": p["obj_id"], **p["twin"]} for p in pl.get("placements", []) if p.get("twin")])
+              twins=[{"obj_id": p["obj_id"], **p["twin"]} for p in pl.get("placements", []) if p.get("twin")],
+              uncertainty=lab.get("uncertainty"))
     try:
         report = write_qa(ctx.out, flagged=flagged, **kw)
     except TdofError:

@@ -140,7 +140,7 @@ def place_gate(rs: Any, obj_id: int, T: np.ndarray) -> GateResult:
                           {"points": int(len(near))})
     S = rs.samples(obj_id)
     fitness, rmse, score = pose_figures(S, near, T, rs.cfg.fit.icp_mm[-1])
-    r = refine_placement(S, rs.mesh(obj_id)[0], near, T, rs.up, rs.cfg)
+    r = refine_placement(S, rs.mesh(obj_id)[0], near, T, rs.up, rs.cfg, rs.plane)
     fig = {"points": int(len(near)), "fitness": round(fitness, 4), "rmse_mm": round(rmse, 4),
            "score_mm": round(score, 4), "fit_fitness": round(r["fitness"], 4), "fit_score_mm": round(r["score_mm"], 4)}
     if r["bad"]:
@@ -223,7 +223,7 @@ def snap_alternatives(rs: Any, index: int, T0: np.ndarray, turns: list[float] | 
     symmetric = bool(sym.get("symmetries_continuous")) if sym else False
     alts: list[dict] = []
     for t, T in starts:
-        r = refine_placement(S, V, near, T, rs.up, rs.cfg)
+        r = refine_placement(S, V, near, T, rs.up, rs.cfg, rs.plane)
         a = {"turn_deg": t, "T_ref_model": r["T_ref_model"], "fitness": round(r["fitness"], 4),
              "score_mm": round(r["score_mm"], 4), "rmse_mm": round(r["rmse_mm"], 4), "note": r["note"],
              "bad": r["bad"]}

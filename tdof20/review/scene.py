@@ -263,6 +263,11 @@ class ReviewScene:
     def up(self) -> np.ndarray:
         return self.T_table_ref[2, :3].copy()
 
+    @property
+    def plane(self) -> np.ndarray:
+        """The table plane the place stage set objects down onto (reconstruction.json)."""
+        return np.asarray(self.reconstruction()[0]["plane"], float)
+
     def reconstruction(self) -> tuple[dict, list[np.ndarray]]:
         if self.rec_meta is None:
             raise TdofError("no reconstruction (work/reconstruction/): run the reconstruct stage first", self.work)
